@@ -1,0 +1,227 @@
+"""The DeepProMP network (paper Sec. III-A): per-modality encoders, one shared affine head,
+Bayesian aggregation with prior N(0, I) and importance weights, and an MLP decoder μ_y(z, x).
+
+All tensors here are in *normalized* units (joint positions and low-dim contexts standardized
+with the training set's statistics); :mod:`deepprompt_ros.core.primitive` converts to and from
+radians. Shapes use B = batch, N = elements (via-points), T = query phases, d = joints,
+k = latent dimension, p = phase-feature dimension.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Mapping
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+PHASE_TYPES = ("linear", "rhythmic")
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig:
+    """Architecture of a DeepProMP (stored inside every checkpoint).
+
+    Attributes
+    ----------
+    n_joints : int
+        d, the number of joints.
+    phase_type : {"linear", "rhythmic"}
+        linear: x in [0, 1]; rhythmic: the network sees [sin 2πx, cos 2πx] (paper Sec. III-C).
+    latent_dim : int
+        k (16 or 32 in the paper).
+    hidden : int
+        Width of the 2 hidden ReLU layers of every MLP (128 in the paper).
+    context_dims : tuple of (str, int)
+        Low-dimensional context modalities and their dimensions, one encoder each.
+    image_shape : (int, int) or None
+        (H, W) of RGB context images, None when the model takes no images.
+    sigma_y : float
+        Fixed decoder standard deviation σ_y (normalized units).
+    var_floor : float
+        Lower bound added to every encoder variance σ²_i (keeps the aggregation finite).
+    phase_harmonics : int
+        Extra Fourier features of the phase fed to encoders and decoder: linear adds
+        [sin πhx, cos πhx] for h = 1..H to x; rhythmic uses [sin 2πhx, cos 2πhx] for h = 1..max(1, H).
+        Both keep the rhythmic phase periodic.
+    """
+
+    n_joints: int
+    phase_type: str = "linear"
+    latent_dim: int = 16
+    hidden: int = 128
+    context_dims: tuple[tuple[str, int], ...] = ()
+    image_shape: tuple[int, int] | None = None
+    sigma_y: float = 0.05
+    var_floor: float = 1e-4
+    phase_harmonics: int = 0
+
+    def __post_init__(self):
+        if self.n_joints < 1:
+            raise ValueError(f"n_joints must be >= 1, got {self.n_joints}")
+        if self.phase_type not in PHASE_TYPES:
+            raise ValueError(f"phase_type '{self.phase_type}' unknown; expected one of {PHASE_TYPES}")
+        if self.latent_dim < 1 or self.hidden < 1:
+            raise ValueError("latent_dim and hidden must be >= 1")
+        if not self.sigma_y > 0 or not self.var_floor > 0:
+            raise ValueError("sigma_y and var_floor must be > 0")
+
+    @property
+    def phase_dim(self) -> int:
+        if self.phase_type == "rhythmic":
+            return 2 * max(1, self.phase_harmonics)
+        return 1 + 2 * self.phase_harmonics
+
+    @property
+    def context_names(self) -> tuple[str, ...]:
+        return tuple(n for n, _ in self.context_dims)
+
+    def to_json(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["context_dims"] = [list(c) for c in self.context_dims]
+        d["image_shape"] = list(self.image_shape) if self.image_shape else None
+        return d
+
+    @classmethod
+    def from_json(cls, d: Mapping) -> "ModelConfig":
+        fields = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - fields
+        if unknown:
+            raise ValueError(f"model config has unknown keys {sorted(unknown)}; expected a subset of {sorted(fields)}")
+        d = dict(d)
+        d["context_dims"] = tuple((str(n), int(c)) for n, c in d.get("context_dims", ()))
+        if d.get("image_shape") is not None:
+            d["image_shape"] = tuple(int(v) for v in d["image_shape"])
+        return cls(**d)
+
+
+def phase_features(x, phase_type: str, harmonics: int):
+    """Phase features φ(x) fed to the networks (works on numpy arrays and torch tensors).
+
+    Parameters
+    ----------
+    x : array, shape (...,)
+        Normalized phase.
+
+    Returns
+    -------
+    array, shape (..., p)
+    """
+    lib = torch if isinstance(x, torch.Tensor) else np
+    feats = []
+    if phase_type == "rhythmic":
+        for h in range(1, max(1, harmonics) + 1):
+            feats += [lib.sin(2 * math.pi * h * x), lib.cos(2 * math.pi * h * x)]
+    else:
+        feats.append(x)
+        for h in range(1, harmonics + 1):
+            feats += [lib.sin(math.pi * h * x), lib.cos(math.pi * h * x)]
+    return lib.stack(feats, -1)
+
+
+def _mlp_trunk(n_in: int, hidden: int) -> nn.Sequential:
+    """2 hidden ReLU layers (the paper's encoder body); the shared head follows."""
+    return nn.Sequential(nn.Linear(n_in, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU())
+
+
+class ImageEncoder(nn.Module):
+    """Small CNN trained from scratch (stand-in for the paper's ResNet-50, which cannot be
+    downloaded here). Input (B, n, 3, H, W) in [0, 1]; the n images of one demonstration are
+    averaged in embedding space (paper Sec. IV), giving one aggregator element per demo."""
+
+    def __init__(self, hidden: int):
+        super().__init__()
+        self.conv = nn.Sequential(
+            nn.Conv2d(3, 16, 5, stride=2, padding=2), nn.ReLU(),
+            nn.Conv2d(16, 32, 3, stride=2, padding=1), nn.ReLU(),
+            nn.Conv2d(32, 32, 3, stride=2, padding=1), nn.ReLU(),
+            nn.AdaptiveAvgPool2d(1), nn.Flatten())
+        self.fc = nn.Sequential(nn.Linear(32, hidden), nn.ReLU())
+
+    def forward(self, images: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        b, n = images.shape[:2]
+        feat = self.fc(self.conv(images.reshape(b * n, *images.shape[2:]))).reshape(b, n, -1)  # (B, n, h)
+        m = mask.unsqueeze(-1)
+        return (feat * m).sum(1) / m.sum(1).clamp_min(1.0)  # (B, h)
+
+
+def bayesian_aggregate(mu: torch.Tensor, var: torch.Tensor, weight: torch.Tensor):
+    """Bayesian aggregation with prior N(0, I) and importance weights (paper Eq. 1 and Eq. 3).
+
+    σ²_z = (1 + Σ_i ω_i / σ²_i)^-1,   μ_z = σ²_z Σ_i ω_i μ_i / σ²_i.
+
+    Parameters
+    ----------
+    mu, var : tensor, shape (B, N, k)
+    weight : tensor, shape (B, N)
+        ω_i ≥ 0; 0 removes element i exactly (also used as the padding mask).
+
+    Returns
+    -------
+    mu_z, var_z : tensor, shape (B, k)
+    """
+    prec = weight.unsqueeze(-1) / var  # (B, N, k)
+    var_z = 1.0 / (1.0 + prec.sum(1))
+    mu_z = var_z * (prec * mu).sum(1)
+    return mu_z, var_z
+
+
+class DeepProMPNet(nn.Module):
+    """Encoders + shared affine head + decoder. See module docstring for units and shapes."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.cfg = cfg
+        h, k = cfg.hidden, cfg.latent_dim
+        self.via_encoder = _mlp_trunk(cfg.phase_dim + cfg.n_joints, h)
+        self.context_encoders = nn.ModuleDict({n: _mlp_trunk(c, h) for n, c in cfg.context_dims})
+        self.image_encoder = ImageEncoder(h) if cfg.image_shape else None
+        self.head = nn.Linear(h, 2 * k)  # ONE affine head shared by all encoders
+        self.decoder = nn.Sequential(
+            nn.Linear(k + cfg.phase_dim, h), nn.ReLU(), nn.Linear(h, h), nn.ReLU(), nn.Linear(h, cfg.n_joints))
+
+    # -- encoders -------------------------------------------------------------------------
+    def _head(self, feat: torch.Tensor):
+        mu, raw = self.head(feat).chunk(2, dim=-1)
+        return mu, F.softplus(raw) + self.cfg.var_floor
+
+    def phase_features(self, x: torch.Tensor) -> torch.Tensor:
+        return phase_features(x, self.cfg.phase_type, self.cfg.phase_harmonics)
+
+    def encode_via_points(self, x: torch.Tensor, y: torch.Tensor):
+        """x (B, N) phases, y (B, N, d) normalized positions → μ, σ² (B, N, k)."""
+        return self._head(self.via_encoder(torch.cat([self.phase_features(x), y], -1)))
+
+    def encode_context(self, name: str, c: torch.Tensor):
+        """c (B, M, c_dim) normalized context vectors → μ, σ² (B, M, k)."""
+        return self._head(self.context_encoders[name](c))
+
+    def encode_images(self, images: torch.Tensor, mask: torch.Tensor):
+        """images (B, n, 3, H, W) in [0, 1], mask (B, n) → μ, σ² (B, 1, k)."""
+        mu, var = self._head(self.image_encoder(images, mask))
+        return mu.unsqueeze(1), var.unsqueeze(1)
+
+    # -- decoder --------------------------------------------------------------------------
+    def decode(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """μ_y(z, x): z (B, k), x (B, T) or (T,) → (B, T, d)."""
+        if x.dim() == 1:
+            x = x.unsqueeze(0).expand(z.shape[0], -1)
+        zz = z.unsqueeze(1).expand(-1, x.shape[1], -1)
+        return self.decoder(torch.cat([zz, self.phase_features(x)], -1))
+
+
+def gaussian_kl(mu_q, var_q, mu_p, var_p) -> torch.Tensor:
+    """KL(N(mu_q, var_q) || N(mu_p, var_p)) summed over the last dim (diagonal Gaussians)."""
+    return 0.5 * (torch.log(var_p / var_q) + (var_q + (mu_q - mu_p) ** 2) / var_p - 1.0).sum(-1)
+
+
+def expected_log_ratio(mu_z, var_z, mu_i, var_i) -> torch.Tensor:
+    """E_{z ~ N(mu_z, var_z)}[log N(z | mu_i, var_i) - log N(z | 0, I)], summed over the last dim.
+
+    The per-element term of the paper's rewritten ELBO (Sec. III-B), in closed form.
+    """
+    e_log_qi = -0.5 * (torch.log(2 * math.pi * var_i) + ((mu_z - mu_i) ** 2 + var_z) / var_i)
+    e_log_p0 = -0.5 * (math.log(2 * math.pi) + mu_z ** 2 + var_z)
+    return (e_log_qi - e_log_p0).sum(-1)

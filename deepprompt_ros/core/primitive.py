@@ -1,0 +1,541 @@
+"""A trained DeepProMP and every operation of the paper (Sec. III-C and appendix).
+
+:class:`DeepProMP` wraps a trained network with a float64 numpy path for the operations that run
+at deployment (conditioning, decoding, refinement): small MLPs are dominated by per-call overhead
+in torch, and refinement needs float64 to reach 1e-6 rad. Images go through the torch CNN.
+
+Units: phases x in [0, 1]; joint positions in the robot's units (rad); contexts in their raw
+units. Every public method validates its inputs and raises ``ValueError`` saying what is expected.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+import torch
+
+from .checkpoint import Checkpoint, Normalization, load_checkpoint
+from .model import DeepProMPNet, phase_features
+
+
+@dataclasses.dataclass(frozen=True)
+class LatentGaussian:
+    """q(z) = N(mean, diag(var)), the conditioned latent distribution of a primitive.
+
+    Attributes
+    ----------
+    mean, var : array, shape (k,)
+    """
+
+    mean: np.ndarray
+    var: np.ndarray
+
+    @property
+    def std(self) -> np.ndarray:
+        return np.sqrt(self.var)
+
+
+@dataclasses.dataclass(frozen=True)
+class RefinementResult:
+    """Outcome of :meth:`DeepProMP.refine`.
+
+    Attributes
+    ----------
+    latent : LatentGaussian
+        Refined (μ̃, σ̃²). The executed trajectory is the decoder at z = μ̃.
+    max_error : float
+        max_i,j |y_ij − μ_y(μ̃, x_i)_j| over the constrained joints (rad): what the robot will miss by.
+    errors : array, shape (n, d)
+        Signed residuals y − μ_y(μ̃, x) per via-point and joint (0 on unconstrained joints).
+    sample_mean_error : float
+        Same, for the mean over the K fixed Monte-Carlo samples (the paper's objective).
+    iterations : int
+    reachable : bool
+        True when max_error <= tol. False means the solver reached a stationary point (or its
+        budget) with a residual above tol: the via-points cannot all be met by this primitive; the
+        best fit found is returned, never a silent miss.
+    reason : str
+    """
+
+    latent: LatentGaussian
+    max_error: float
+    errors: np.ndarray
+    sample_mean_error: float
+    iterations: int
+    reachable: bool
+    reason: str
+
+
+class _NumpyMLP:
+    """ReLU MLP evaluated in float64 numpy; keeps the pre-activation masks for Jacobians."""
+
+    def __init__(self, seq: torch.nn.Sequential):
+        lin = [m for m in seq if isinstance(m, torch.nn.Linear)]
+        self.W = [m.weight.detach().double().numpy().copy() for m in lin]
+        self.b = [m.bias.detach().double().numpy().copy() for m in lin]
+        self.relu_last = isinstance(list(seq)[-1], torch.nn.ReLU)
+
+    def __call__(self, h: np.ndarray) -> np.ndarray:
+        n = len(self.W)
+        for i, (w, b) in enumerate(zip(self.W, self.b)):
+            h = h @ w.T + b
+            if i < n - 1 or self.relu_last:
+                h = np.maximum(h, 0.0)
+        return h
+
+
+class DeepProMP:
+    """A trained DeepProMP with its joint names and normalization.
+
+    Parameters
+    ----------
+    net : DeepProMPNet
+    normalization : Normalization
+    joint_names : sequence of str, length d
+    name : str
+    metadata : mapping, optional (training provenance)
+    """
+
+    def __init__(self, net: DeepProMPNet, normalization: Normalization, joint_names: Sequence[str],
+                 name: str = "primitive", metadata: Mapping | None = None):
+        self.net = net.eval()
+        self.cfg = net.cfg
+        self.norm = normalization
+        self.joint_names = tuple(joint_names)
+        self.name = name
+        self.metadata = dict(metadata or {})
+        if len(self.joint_names) != self.cfg.n_joints:
+            raise ValueError(f"{len(self.joint_names)} joint names for a model with {self.cfg.n_joints} joints")
+        self._via = _NumpyMLP(net.via_encoder)
+        self._ctx = {n: _NumpyMLP(m) for n, m in net.context_encoders.items()}
+        self._head_W = net.head.weight.detach().double().numpy().copy()
+        self._head_b = net.head.bias.detach().double().numpy().copy()
+        self._dec = _NumpyMLP(net.decoder)
+        k = self.cfg.latent_dim
+        self._dec_W1z = self._dec.W[0][:, :k]
+        self._dec_W1x = self._dec.W[0][:, k:]
+        self._y_mean = np.asarray(normalization.y_mean, dtype=np.float64)
+        self._y_std = np.asarray(normalization.y_std, dtype=np.float64)
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_checkpoint(cls, ck: Checkpoint | str, name: str | None = None) -> "DeepProMP":
+        if not isinstance(ck, Checkpoint):
+            import pathlib
+
+            name = name or pathlib.Path(ck).stem
+            ck = load_checkpoint(ck)
+        return cls(ck.build(), ck.normalization, ck.joint_names, name or "primitive", ck.metadata)
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def n_joints(self) -> int:
+        return self.cfg.n_joints
+
+    @property
+    def latent_dim(self) -> int:
+        return self.cfg.latent_dim
+
+    @property
+    def phase_type(self) -> str:
+        return self.cfg.phase_type
+
+    @property
+    def context_dims(self) -> dict[str, int]:
+        return dict(self.cfg.context_dims)
+
+    @property
+    def image_shape(self):
+        return self.cfg.image_shape
+
+    def _joint_list(self) -> str:
+        j = self.joint_names
+        return ", ".join(j) if len(j) <= 4 else f"{j[0]}..{j[-1]}"
+
+    # ------------------------------------------------------------------ validation
+    def check_phases(self, x, what: str = "phase") -> np.ndarray:
+        x = np.asarray(x, dtype=np.float64)
+        if x.ndim != 1:
+            raise ValueError(f"{what} must be a 1-D array of phases, got shape {x.shape}")
+        if not np.all(np.isfinite(x)):
+            raise ValueError(f"{what} contains NaN or inf; expected finite phases in [0, 1]")
+        if x.size and (x.min() < 0.0 or x.max() > 1.0):
+            bad = x[(x < 0) | (x > 1)][0]
+            raise ValueError(f"{what} {bad:.6g} is outside [0, 1]; phases are normalized time "
+                             f"({'fraction of a cycle' if self.phase_type == 'rhythmic' else 'start=0, end=1'})")
+        return x
+
+    def check_positions(self, y, n: int | None = None, what: str = "via-point") -> np.ndarray:
+        y = np.asarray(y, dtype=np.float64)
+        if y.ndim == 1:
+            y = y[None, :]
+        if y.ndim != 2:
+            raise ValueError(f"{what} positions must have shape (n, {self.n_joints}), got {y.shape}")
+        if y.shape[1] != self.n_joints:
+            raise ValueError(f"{what} has {y.shape[1]} joint values; primitive '{self.name}' has "
+                             f"{self.n_joints} joints: {self._joint_list()}")
+        if n is not None and y.shape[0] != n:
+            raise ValueError(f"{y.shape[0]} {what} position rows for {n} phases; expected one row per phase")
+        bad = ~np.isfinite(y)
+        if bad.any():
+            i, j = np.argwhere(bad)[0]
+            raise ValueError(f"{what} {i} joint '{self.joint_names[j]}' is NaN or inf; expected finite positions")
+        return y
+
+    @staticmethod
+    def _check_weights(w, n: int, what: str) -> np.ndarray:
+        if w is None:
+            return np.ones(n)
+        w = np.asarray(w, dtype=np.float64).reshape(-1)
+        if w.shape[0] != n:
+            raise ValueError(f"{what}: {w.shape[0]} importance weights for {n} elements; expected one per element")
+        if not np.all(np.isfinite(w)) or np.any(w < 0):
+            raise ValueError(f"{what}: importance weights must be finite and >= 0, got {w.tolist()}")
+        return w
+
+    def _check_mask(self, mask, n: int) -> np.ndarray:
+        if mask is None:
+            return np.ones((n, self.n_joints), dtype=bool)
+        m = np.asarray(mask, dtype=bool)
+        if m.ndim == 1:
+            m = np.broadcast_to(m, (n, m.shape[0]))
+        if m.shape != (n, self.n_joints):
+            raise ValueError(f"joint mask must have shape ({n}, {self.n_joints}) or ({self.n_joints},), got {m.shape}")
+        return m
+
+    # ------------------------------------------------------------------ encoders (numpy)
+    def _head(self, feat: np.ndarray):
+        out = feat @ self._head_W.T + self._head_b
+        k = self.latent_dim
+        raw = out[..., k:]
+        var = np.logaddexp(0.0, raw) + self.cfg.var_floor  # softplus + floor, as in the network
+        return out[..., :k], var
+
+    def _phase_feats(self, x: np.ndarray) -> np.ndarray:
+        return phase_features(x, self.cfg.phase_type, self.cfg.phase_harmonics)
+
+    def encode_via_points(self, x, y):
+        """Per-element q(z | a_i): x (n,), y (n, d) rad → μ_i, σ²_i (n, k)."""
+        yn = (y - self._y_mean) / self._y_std
+        return self._head(self._via(np.concatenate([self._phase_feats(x), yn], 1)))
+
+    def encode_context(self, name: str, c):
+        """q(z | c_i) for low-dim contexts: c (m, c_dim) raw units → μ_i, σ²_i (m, k)."""
+        if name not in self._ctx:
+            raise ValueError(f"primitive '{self.name}' takes no context '{name}'; it accepts "
+                             f"{sorted(self._ctx) or 'no low-dimensional contexts'}"
+                             f"{' and images' if self.image_shape else ''}")
+        dim = self.context_dims[name]
+        c = np.asarray(c, dtype=np.float64)
+        if c.ndim == 1:
+            c = c[None, :]
+        if c.ndim != 2 or c.shape[1] != dim or c.shape[0] < 1:
+            raise ValueError(f"context '{name}' must have {dim} values per vector (shape (m, {dim})), got {c.shape}")
+        if not np.all(np.isfinite(c)):
+            raise ValueError(f"context '{name}' contains NaN or inf; expected finite values")
+        cn = (c - self.norm.ctx_mean[name]) / self.norm.ctx_std[name]
+        return self._head(self._ctx[name](cn))
+
+    def encode_images(self, images):
+        """q(z | images): images (n, H, W, 3) uint8 of one scene, averaged in embedding space → (1, k)."""
+        if self.image_shape is None:
+            raise ValueError(f"primitive '{self.name}' takes no images")
+        im = np.asarray(images)
+        h, w = self.image_shape
+        if im.ndim == 3:
+            im = im[None]
+        if im.ndim != 4 or im.shape[1:] != (h, w, 3) or im.dtype != np.uint8 or im.shape[0] < 1:
+            raise ValueError(f"images must be uint8 RGB with shape (n, {h}, {w}, 3), got dtype {im.dtype}, "
+                             f"shape {im.shape}")
+        with torch.inference_mode():
+            t = torch.from_numpy(np.ascontiguousarray(im)).permute(0, 3, 1, 2).float().unsqueeze(0) / 255.0
+            mu, var = self.net.encode_images(t, torch.ones(1, t.shape[1]))
+        return mu[0].double().numpy(), var[0].double().numpy()
+
+    # ------------------------------------------------------------------ conditioning
+    def prior(self) -> LatentGaussian:
+        """p0(z) = N(0, I)."""
+        return LatentGaussian(np.zeros(self.latent_dim), np.ones(self.latent_dim))
+
+    def condition(self, via_x=None, via_y=None, via_weights=None, via_mask=None,
+                  contexts: Mapping[str, np.ndarray] | None = None,
+                  context_weights: Mapping[str, Sequence[float]] | None = None,
+                  images=None, image_weight: float = 1.0) -> LatentGaussian:
+        """q(z | A, C, ω) by Bayesian aggregation (paper Eq. 1 and the importance-weighted Eq. 3).
+
+        Parameters
+        ----------
+        via_x : array, shape (n,), phases in [0, 1]
+        via_y : array, shape (n, d), joint positions
+        via_weights : array, shape (n,), ω ≥ 0 (default 1; 0 removes the via-point exactly)
+        via_mask : array of bool, shape (n, d) or (d,), optional
+            Joints constrained by each via-point. The encoder needs whole configurations, so the
+            unconstrained joints of a partial via-point are filled with the mean trajectory
+            conditioned on everything else; :meth:`refine` with the same mask then meets the
+            constrained joints exactly.
+        contexts : mapping modality -> array, shape (m, c) or (c,)
+        context_weights : mapping modality -> array, shape (m,)
+        images : array, shape (n_img, H, W, 3) uint8, the images of one scene
+        image_weight : float
+        """
+        mus, vars_, ws = [], [], []
+        if contexts:
+            for name, c in contexts.items():
+                mu, var = self.encode_context(name, c)
+                mus.append(mu), vars_.append(var)
+                ws.append(self._check_weights((context_weights or {}).get(name), mu.shape[0], f"context '{name}'"))
+        if images is not None:
+            mu, var = self.encode_images(images)
+            mus.append(mu), vars_.append(var)
+            ws.append(self._check_weights([image_weight], 1, "images"))
+        if via_x is not None or via_y is not None:
+            if via_x is None or via_y is None:
+                raise ValueError("via-points need both phases via_x (n,) and positions via_y (n, d)")
+            x = self.check_phases(via_x, "via-point phase")
+            y = self.check_positions(via_y, x.shape[0])
+            w = self._check_weights(via_weights, x.shape[0], "via-points")
+            mask = self._check_mask(via_mask, x.shape[0])
+            if not mask.all():
+                full = mask.all(1)
+                base = self.condition(x[full], y[full], w[full], None, contexts, context_weights, images, image_weight)
+                fill = self.decode(base.mean, x)
+                y = np.where(mask, y, fill)
+            mu, var = self.encode_via_points(x, y)
+            mus.append(mu), vars_.append(var), ws.append(w)
+        if not mus:
+            return self.prior()
+        mu, var, w = np.concatenate(mus), np.concatenate(vars_), np.concatenate(ws)
+        return self.aggregate(mu, var, w)
+
+    @staticmethod
+    def aggregate(mu: np.ndarray, var: np.ndarray, w: np.ndarray) -> LatentGaussian:
+        """σ²_z = (1 + Σ ω_i/σ²_i)^-1, μ_z = σ²_z Σ ω_i μ_i/σ²_i  (mu, var (n, k); w (n,))."""
+        prec = w[:, None] / var
+        var_z = 1.0 / (1.0 + prec.sum(0))
+        return LatentGaussian(var_z * (prec * mu).sum(0), var_z)
+
+    # ------------------------------------------------------------------ decoding
+    def decode(self, z, x) -> np.ndarray:
+        """μ_y(z, x) in joint units.
+
+        Parameters
+        ----------
+        z : array, shape (k,) or (n, k)
+        x : array, shape (T,) — or shape (T,) with z of shape (T, k) when ``per_phase`` use
+
+        Returns
+        -------
+        array, shape (T, d) or (n, T, d)
+        """
+        z = np.asarray(z, dtype=np.float64)
+        x = np.asarray(x, dtype=np.float64)
+        pre_x = self._phase_feats(x) @ self._dec_W1x.T + self._dec.b[0]  # (T, h)
+        if z.ndim == 1:
+            h = np.maximum(pre_x + z @ self._dec_W1z.T, 0.0)
+        else:
+            h = np.maximum(pre_x[None] + (z @ self._dec_W1z.T)[:, None, :], 0.0)
+        h = np.maximum(h @ self._dec.W[1].T + self._dec.b[1], 0.0)
+        out = h @ self._dec.W[2].T + self._dec.b[2]
+        return out * self._y_std + self._y_mean
+
+    def decode_per_phase(self, z_x: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """Decode a latent that varies with phase (blending): z_x (T, k), x (T,) → (T, d)."""
+        pre = self._phase_feats(x) @ self._dec_W1x.T + self._dec.b[0] + z_x @ self._dec_W1z.T
+        h = np.maximum(np.maximum(pre, 0.0) @ self._dec.W[1].T + self._dec.b[1], 0.0)
+        return (h @ self._dec.W[2].T + self._dec.b[2]) * self._y_std + self._y_mean
+
+    def decoder_jacobian(self, z: np.ndarray, x: np.ndarray):
+        """μ_y(z, x_i) and ∂μ_y/∂z at each phase, joint units.
+
+        Parameters
+        ----------
+        z : array, shape (k,) or (K, k)
+        x : array, shape (n,)
+
+        Returns
+        -------
+        y : array, shape (n, d) or (K, n, d); jac : array, shape (n, d, k) or (K, n, d, k)
+        """
+        zw = z @ self._dec_W1z.T  # (h,) or (K, h)
+        pre1 = self._phase_feats(x) @ self._dec_W1x.T + self._dec.b[0] + zw[..., None, :]  # (..., n, h)
+        h1 = np.maximum(pre1, 0.0)
+        pre2 = h1 @ self._dec.W[1].T + self._dec.b[1]
+        h2 = np.maximum(pre2, 0.0)
+        y = (h2 @ self._dec.W[2].T + self._dec.b[2]) * self._y_std + self._y_mean
+        a = (pre1 > 0)[..., None] * self._dec_W1z  # (..., n, h, k)
+        b = np.einsum("ij,...njk->...nik", self._dec.W[1], a) * (pre2 > 0)[..., None]
+        jac = np.einsum("dj,...njk->...ndk", self._dec.W[2], b) * self._y_std[:, None]
+        return y, jac
+
+    def mean_trajectory(self, latent: LatentGaussian, x) -> np.ndarray:
+        """The trajectory a robot executes for ``latent``: μ_y(μ_z, x), shape (T, d)."""
+        return self.decode(latent.mean, self.check_phases(x))
+
+    def sample(self, latent: LatentGaussian, x, n: int, rng: np.random.Generator | int | None = None) -> np.ndarray:
+        """n trajectories, each with ONE z ~ q(z) held constant over the trajectory (paper Sec. III-C).
+
+        Returns
+        -------
+        array, shape (n, T, d)
+        """
+        if n < 1:
+            raise ValueError(f"number of samples must be >= 1, got {n}")
+        rng = np.random.default_rng(rng)
+        z = latent.mean + rng.standard_normal((n, self.latent_dim)) * latent.std
+        return self.decode(z, self.check_phases(x))
+
+    def trajectory_std(self, latent: LatentGaussian, x, n_samples: int = 64, seed: int = 0) -> np.ndarray:
+        """Per-point standard deviation of the trajectory distribution (Monte Carlo), shape (T, d)."""
+        return self.sample(latent, x, n_samples, seed).std(0)
+
+    # ------------------------------------------------------------------ blending
+    @staticmethod
+    def blend_latent(a: LatentGaussian, b: LatentGaussian, omega) -> tuple[np.ndarray, np.ndarray]:
+        """q_b(z | x) ∝ q_a(z)^ω(x) q_b(z)^(1−ω(x)) (paper Eq. 4), per phase.
+
+        Parameters
+        ----------
+        omega : array, shape (T,), values in [0, 1]
+
+        Returns
+        -------
+        mean, var : array, shape (T, k)
+        """
+        w = np.asarray(omega, dtype=np.float64)[:, None]
+        if not np.all(np.isfinite(w)) or w.min() < 0 or w.max() > 1:
+            raise ValueError("blending weights ω(x) must be finite and in [0, 1]")
+        prec = w / a.var + (1 - w) / b.var
+        mean = (w * a.mean / a.var + (1 - w) * b.mean / b.var) / prec
+        return mean, 1.0 / prec
+
+    def blend(self, a: LatentGaussian, b: LatentGaussian, omega: Callable | np.ndarray, x,
+              eps: np.ndarray | None = None) -> np.ndarray:
+        """Blended trajectory z(x) = μ_b(x) + ε σ_b(x) with ONE ε per trajectory (smooth in x).
+
+        Parameters
+        ----------
+        omega : callable x -> ω(x) in [0, 1], or array shape (T,)
+        eps : array, shape (k,), optional; None decodes the blended mean (ε = 0)
+
+        Returns
+        -------
+        array, shape (T, d)
+        """
+        x = self.check_phases(x)
+        w = omega(x) if callable(omega) else np.asarray(omega, dtype=np.float64)
+        if np.shape(w) != x.shape:
+            raise ValueError(f"ω(x) must give one weight per phase: got shape {np.shape(w)} for {x.shape[0]} phases")
+        mean, var = self.blend_latent(a, b, w)
+        z = mean if eps is None else mean + np.asarray(eps)[None, :] * np.sqrt(var)
+        return self.decode_per_phase(z, x)
+
+    # ------------------------------------------------------------------ refinement
+    def refine(self, latent: LatentGaussian, via_x, via_y, joint_mask=None, max_iterations: int = 200,
+               tol: float = 1e-6, n_samples: int = 32, seed: int = 0, sigma_target: np.ndarray | None = None,
+               sigma_iterations: int = 10) -> RefinementResult:
+        """Deployment-time refinement of (μ̃, σ̃) (paper Eq. 5 and appendix).
+
+        Stage 1 moves μ̃ — starting at the given (posterior) mean — so that the trajectory the robot
+        executes, μ_y(μ̃, x), passes through the via-points: damped Gauss–Newton
+        (Levenberg–Marquardt) in float64 with the decoder's exact Jacobian. Stage 2 keeps μ̃ and fits
+        σ̃ to the paper's objective Σ_i ||y_i − 1/K Σ_k μ_y(μ̃ + ε_k σ̃, x_i)||² + ||σ* − σ̃||² with
+        K FIXED samples ε_k (common random numbers: fresh samples at every step leave Monte-Carlo
+        noise of ~1e-2 that no optimizer removes).
+
+        Unreachable via-points: when stage 1 stops at a stationary point (the damped step no longer
+        decreases the squared error, or the gradient Jᵀr vanishes) or at its iteration budget with
+        max error > tol, the result says ``reachable=False`` and carries the best fit and its residuals.
+
+        Parameters
+        ----------
+        latent : LatentGaussian, the initialization (normally the posterior from :meth:`condition`)
+        via_x : array, shape (n,)
+        via_y : array, shape (n, d)
+        joint_mask : array of bool, shape (n, d) or (d,), optional; joints to meet (default all)
+        sigma_target : array, shape (k,), σ*; default the initial std
+        """
+        x = self.check_phases(via_x, "via-point phase")
+        if x.size == 0:
+            raise ValueError("refinement needs at least one via-point")
+        y = self.check_positions(via_y, x.shape[0])
+        mask = self._check_mask(joint_mask, x.shape[0])
+        if not mask.any():
+            raise ValueError("joint mask selects no joint; expected at least one constrained joint")
+        if max_iterations < 1 or not tol > 0:
+            raise ValueError("max_iterations must be >= 1 and tol > 0")
+        mf = mask.astype(np.float64)
+
+        def residual(z):
+            y_hat, jac = self.decoder_jacobian(z, x)
+            r = (y - y_hat) * mf
+            return r, jac * mf[:, :, None]
+
+        mu = np.array(latent.mean, dtype=np.float64)
+        r, jac = residual(mu)
+        cost = float((r ** 2).sum())
+        lam, it, reason = 1e-3, 0, "budget"
+        eye = np.eye(self.latent_dim)
+        while it < max_iterations:
+            if np.abs(r).max() <= 0.1 * tol:
+                reason = "converged"
+                break
+            J = jac.reshape(-1, self.latent_dim)
+            rv = r.reshape(-1)
+            g = J.T @ rv
+            if np.abs(g).max() < 1e-15 * max(1.0, cost):
+                reason = "stationary (zero gradient)"
+                break
+            A = J.T @ J
+            improved = False
+            while lam < 1e12:
+                step = np.linalg.solve(A + lam * eye, g)
+                r_new, jac_new = residual(mu + step)
+                c_new = float((r_new ** 2).sum())
+                if c_new < cost:
+                    mu, r, jac, cost = mu + step, r_new, jac_new, c_new
+                    lam = max(lam / 5.0, 1e-12)
+                    improved = True
+                    break
+                lam *= 4.0
+            it += 1
+            if not improved:
+                reason = "stationary (no descent step)"
+                break
+        max_err = float(np.abs(r).max())
+        if max_err <= tol:
+            reason = "converged"
+
+        # Stage 2: σ̃ with fixed ε (paper objective in σ̃ at the refined mean).
+        eps = np.random.default_rng(seed).standard_normal((n_samples, self.latent_dim))
+        s_target = np.sqrt(latent.var) if sigma_target is None else np.asarray(sigma_target, dtype=np.float64)
+        s = s_target.copy()
+
+        def s_residual(s):
+            # residual [y − ȳ(σ̃); σ* − σ̃] and the Jacobian of the model part [∂ȳ/∂σ̃; I]
+            ys, js = self.decoder_jacobian(mu[None] + eps * s[None], x)  # (K, n, d), (K, n, d, k)
+            r_y = ((y - ys.mean(0)) * mf).reshape(-1)
+            j_y = (js * eps[:, None, None, :]).mean(0) * mf[:, :, None]
+            return (np.concatenate([r_y, s_target - s]),
+                    np.concatenate([j_y.reshape(-1, s.size), np.eye(s.size)]))
+
+        if sigma_iterations > 0:
+            rs, jm = s_residual(s)
+            c = float(rs @ rs)
+            lam_s = 1e-3
+            for _ in range(sigma_iterations):
+                step = np.linalg.solve(jm.T @ jm + lam_s * np.eye(s.size), jm.T @ rs)
+                s_new = np.maximum(s + step, 1e-6)
+                rs_new, jm_new = s_residual(s_new)
+                c_new = float(rs_new @ rs_new)
+                if c_new < c:
+                    s, rs, jm, c, lam_s = s_new, rs_new, jm_new, c_new, lam_s / 5
+                else:
+                    lam_s *= 4
+                    if lam_s > 1e8:
+                        break
+        y_bar = self.decode(mu[None] + eps * s[None], x).mean(0)
+        return RefinementResult(
+            latent=LatentGaussian(mu, s ** 2), max_error=max_err, errors=r, iterations=it,
+            sample_mean_error=float(np.abs((y - y_bar) * mf).max()), reachable=max_err <= tol, reason=reason)

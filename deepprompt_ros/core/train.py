@@ -1,0 +1,370 @@
+"""Training a DeepProMP (paper Sec. III-B): read top to bottom — batch → loss → backward → eval → checkpoint.
+
+Command line::
+
+    python -m deepprompt_ros.core.train --data DATASET_DIR --config config/train.yaml --out models/NAME.safetensors
+    python -m deepprompt_ros.core.train --builtin bimodal_sine --config config/train_bimodal_sine.yaml --out ...
+
+Objectives (``objective`` in the YAML):
+
+``paper``  the paper's rewritten ELBO: z ~ q(z | subset), reconstruct the whole demonstration,
+           minus β Σ_i E_q[log q(z|a_i) − log p0(z)] over the given elements.
+``np``     Neural-Process form: z ~ q(z | all points + all contexts), reconstruct the demonstration,
+           β KL(q(z | all) ‖ q(z | subset)). With a subset that cannot tell modes apart, q(z|subset)
+           must cover every mode that is consistent with it — the property that keeps conditioned
+           samples multimodal (the paper's objective averages the modes instead; see README).
+
+Every update sub-samples which inputs are given: via-points (a random count), each context
+modality, images, their combinations, and sometimes nothing (the prior).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import json
+import math
+import pathlib
+import sys
+import time
+from typing import Mapping
+
+import numpy as np
+import torch
+
+from . import __version__
+from .checkpoint import Normalization, save_checkpoint
+from .dataset import DatasetError, DemoDataset, builtin_dataset, load_dataset
+from .model import DeepProMPNet, ModelConfig, bayesian_aggregate, expected_log_ratio, gaussian_kl
+
+OBJECTIVES = ("paper", "np")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Training hyper-parameters (YAML keys of the same names; unknown keys are refused)."""
+
+    latent_dim: int = 16
+    hidden: int = 128
+    sigma_y: float = 0.05
+    var_floor: float = 1e-4
+    phase_harmonics: int = 0
+    objective: str = "np"
+    beta: float = 1.0
+    kl_anneal_steps: int = 1000
+    lr: float = 1e-3
+    batch_size: int = 16
+    steps: int = 4000
+    n_points: int = 100
+    max_via_points: int = 10
+    p_via_points: float = 0.7
+    p_context: float = 0.5
+    p_empty: float = 0.1
+    n_val: int = 0  # 0 → 10 % of the demonstrations (at least 1)
+    val_every: int = 250
+    val_via_points: int = 5
+    seed: int = 0
+    threads: int = 2
+
+    def __post_init__(self):
+        checks = [
+            (self.objective in OBJECTIVES, f"objective must be one of {OBJECTIVES}, got '{self.objective}'"),
+            (self.latent_dim >= 1 and self.hidden >= 1, "latent_dim and hidden must be >= 1"),
+            (self.sigma_y > 0 and self.var_floor > 0, "sigma_y and var_floor must be > 0"),
+            (self.beta >= 0, f"beta must be >= 0, got {self.beta}"),
+            (self.lr > 0, f"lr must be > 0, got {self.lr}"),
+            (self.batch_size >= 1 and self.steps >= 1, "batch_size and steps must be >= 1"),
+            (self.n_points >= 2, f"n_points must be >= 2, got {self.n_points}"),
+            (0 <= self.max_via_points <= self.n_points, f"max_via_points must be in [0, n_points={self.n_points}]"),
+            (all(0 <= p <= 1 for p in (self.p_via_points, self.p_context, self.p_empty)),
+             "p_via_points, p_context, p_empty must be probabilities in [0, 1]"),
+            (self.val_every >= 1 and self.threads >= 1, "val_every and threads must be >= 1"),
+        ]
+        for ok, msg in checks:
+            if not ok:
+                raise ValueError(f"invalid training config: {msg}")
+
+    @classmethod
+    def from_yaml(cls, path) -> "TrainConfig":
+        import yaml
+
+        path = pathlib.Path(path)
+        if not path.is_file():
+            raise ValueError(f"training config '{path}' does not exist; expected a YAML file")
+        try:
+            raw = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise ValueError(f"training config '{path}' is not valid YAML: {exc}") from exc
+        if not isinstance(raw, dict):
+            raise ValueError(f"training config '{path}' must be a mapping of keys to values")
+        return cls.from_dict(raw, str(path))
+
+    @classmethod
+    def from_dict(cls, raw: Mapping, where: str = "config") -> "TrainConfig":
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = sorted(set(raw) - set(fields))
+        if unknown:
+            raise ValueError(f"{where}: unknown keys {unknown}; valid keys: {sorted(fields)}")
+        kw = {}
+        for k, v in raw.items():
+            typ = type(getattr(cls(), k))
+            if typ is float and isinstance(v, int) and not isinstance(v, bool):
+                v = float(v)
+            if not isinstance(v, typ) or (typ is int and isinstance(v, bool)):
+                raise ValueError(f"{where}: '{k}' must be {typ.__name__}, got {v!r}")
+            kw[k] = v
+        return cls(**kw)
+
+
+@dataclasses.dataclass(frozen=True)
+class TensorData:
+    """A dataset as padded tensors (normalized units).
+
+    y : (D, T, d); x : (T,); ctx[name] : (D, M, c) with ctx_mask[name] (D, M);
+    images : (D, n, 3, H, W) float in [0, 1] with image_mask (D, n), or None.
+    """
+
+    y: torch.Tensor
+    x: torch.Tensor
+    ctx: Mapping[str, torch.Tensor]
+    ctx_mask: Mapping[str, torch.Tensor]
+    images: torch.Tensor | None
+    image_mask: torch.Tensor | None
+
+
+def fit_normalization(ds: DemoDataset, n_points: int) -> Normalization:
+    y = np.stack([d.resampled(n_points) for d in ds.demos])  # (D, T, d)
+    y_std = np.maximum(y.reshape(-1, y.shape[-1]).std(0), 1e-3)
+    ctx_mean, ctx_std = {}, {}
+    for name in ds.context_dims:
+        c = np.concatenate([d.contexts[name] for d in ds.demos], 0)
+        ctx_mean[name] = c.mean(0)
+        ctx_std[name] = np.maximum(c.std(0), 1e-3)
+    return Normalization(y.reshape(-1, y.shape[-1]).mean(0), y_std, ctx_mean, ctx_std)
+
+
+def to_tensors(ds: DemoDataset, norm: Normalization, n_points: int) -> TensorData:
+    y = np.stack([d.resampled(n_points) for d in ds.demos])
+    y = (y - norm.y_mean) / norm.y_std
+    ctx, ctx_mask = {}, {}
+    for name in ds.context_dims:
+        m = max(d.contexts[name].shape[0] for d in ds.demos)
+        arr = np.zeros((len(ds), m, ds.context_dims[name]))
+        mask = np.zeros((len(ds), m))
+        for i, d in enumerate(ds.demos):
+            c = d.contexts[name]
+            arr[i, : len(c)] = (c - norm.ctx_mean[name]) / norm.ctx_std[name]
+            mask[i, : len(c)] = 1.0
+        ctx[name] = torch.tensor(arr, dtype=torch.float32)
+        ctx_mask[name] = torch.tensor(mask, dtype=torch.float32)
+    images = image_mask = None
+    if ds.image_shape is not None:
+        n = max(d.images.shape[0] for d in ds.demos)
+        h, w = ds.image_shape
+        images = torch.zeros(len(ds), n, 3, h, w)
+        image_mask = torch.zeros(len(ds), n)
+        for i, d in enumerate(ds.demos):
+            images[i, : len(d.images)] = torch.from_numpy(d.images).permute(0, 3, 1, 2).float() / 255.0
+            image_mask[i, : len(d.images)] = 1.0
+    return TensorData(torch.tensor(y, dtype=torch.float32), torch.linspace(0, 1, n_points), ctx, ctx_mask,
+                      images, image_mask)
+
+
+def encode_all(net: DeepProMPNet, data: TensorData, idx: torch.Tensor):
+    """Encode every element of the demos ``idx``: all T points as via-points, all contexts, images.
+
+    Returns
+    -------
+    mu, var : (B, N_total, k); kinds : list of (kind, slice) naming which columns are which.
+    """
+    b = idx.shape[0]
+    y = data.y[idx]
+    x = data.x.unsqueeze(0).expand(b, -1)
+    mus, vars_, kinds, start = [], [], [], 0
+    mu, var = net.encode_via_points(x, y)
+    mus.append(mu), vars_.append(var)
+    kinds.append(("via", slice(0, y.shape[1])))
+    start = y.shape[1]
+    for name in net.cfg.context_names:
+        mu, var = net.encode_context(name, data.ctx[name][idx])
+        mus.append(mu), vars_.append(var)
+        kinds.append((name, slice(start, start + mu.shape[1])))
+        start += mu.shape[1]
+    if net.image_encoder is not None:
+        mu, var = net.encode_images(data.images[idx], data.image_mask[idx])
+        mus.append(mu), vars_.append(var)
+        kinds.append(("image", slice(start, start + 1)))
+        start += 1
+    return torch.cat(mus, 1), torch.cat(vars_, 1), kinds
+
+
+def sample_subset_weights(cfg: TrainConfig, data: TensorData, idx: torch.Tensor, kinds, gen: torch.Generator):
+    """Which inputs each trajectory of the batch is given this update (1 = given, 0 = withheld).
+
+    Via-points: with probability p_via_points, a uniformly random count in [1, max_via_points] of
+    randomly placed points; each context modality / the images: with probability p_context;
+    with probability p_empty nothing at all (the prior).
+
+    Returns
+    -------
+    w_sub, w_all : (B, N_total)   subset weights and all-elements weights (padding masked).
+    """
+    b, t = idx.shape[0], data.y.shape[1]
+    parts_sub, parts_all = [], []
+    empty = torch.rand(b, generator=gen) < cfg.p_empty
+    for kind, sl in kinds:
+        n = sl.stop - sl.start
+        if kind == "via":
+            use = (torch.rand(b, generator=gen) < cfg.p_via_points) & ~empty
+            count = torch.randint(1, max(cfg.max_via_points, 1) + 1, (b,), generator=gen)
+            rank = torch.rand(b, t, generator=gen).argsort(1).argsort(1)  # random rank of each point
+            sub = (rank < count.unsqueeze(1)) & use.unsqueeze(1)
+            parts_sub.append(sub.float())
+            parts_all.append(torch.ones(b, n))
+        else:
+            mask = data.image_mask[idx].amax(1, keepdim=True) if kind == "image" else data.ctx_mask[kind][idx]
+            use = (torch.rand(b, generator=gen) < cfg.p_context) & ~empty
+            parts_sub.append(mask * use.float().unsqueeze(1))
+            parts_all.append(mask)
+    return torch.cat(parts_sub, 1), torch.cat(parts_all, 1)
+
+
+def loss_fn(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, idx, gen, beta: float):
+    """Negative ELBO per trajectory (mean over the batch) and its parts."""
+    mu, var, kinds = encode_all(net, data, idx)
+    w_sub, w_all = sample_subset_weights(cfg, data, idx, kinds, gen)
+    mu_s, var_s = bayesian_aggregate(mu, var, w_sub)
+    y = data.y[idx]
+    if cfg.objective == "np":
+        mu_a, var_a = bayesian_aggregate(mu, var, w_all)
+        z = mu_a + torch.randn(mu_a.shape, generator=gen) * var_a.sqrt()  # ONE z per trajectory
+        kl = gaussian_kl(mu_a, var_a, mu_s, var_s)
+    else:
+        z = mu_s + torch.randn(mu_s.shape, generator=gen) * var_s.sqrt()
+        kl = (w_sub * expected_log_ratio(mu_s.unsqueeze(1), var_s.unsqueeze(1), mu, var)).sum(1)
+    y_hat = net.decode(z, data.x)
+    nll = 0.5 * ((y - y_hat) ** 2).sum((1, 2)) / cfg.sigma_y ** 2
+    loss = (nll + beta * kl).mean()
+    return loss, nll.mean().item(), kl.mean().item()
+
+
+@torch.no_grad()
+def validation_mse(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, norm: Normalization) -> dict:
+    """Held-out reconstruction MSE (rad²), decoding at the posterior mean, for fixed (seeded)
+    conditionings: ``via`` (val_via_points random points), ``context`` (all contexts, if any),
+    ``both``; ``mean`` averages the available ones."""
+    net.eval()
+    idx = torch.arange(data.y.shape[0])
+    mu, var, kinds = encode_all(net, data, idx)
+    gen = torch.Generator().manual_seed(12345)
+    b, t = data.y.shape[:2]
+    rank = torch.rand(b, t, generator=gen).argsort(1).argsort(1)
+    via = (rank < cfg.val_via_points).float()
+    has_ctx = len(kinds) > 1
+    weights = {"via": [], "context": [], "both": []}
+    for kind, sl in kinds:
+        n = sl.stop - sl.start
+        if kind == "via":
+            weights["via"].append(via), weights["both"].append(via), weights["context"].append(torch.zeros(b, n))
+        else:
+            mask = data.image_mask.amax(1, keepdim=True) if kind == "image" else data.ctx_mask[kind]
+            weights["via"].append(torch.zeros(b, n)), weights["context"].append(mask), weights["both"].append(mask)
+    scale = torch.tensor(norm.y_std, dtype=torch.float32)
+    out = {}
+    for name, parts in weights.items():
+        if name != "via" and not has_ctx:
+            continue
+        mu_z, _ = bayesian_aggregate(mu, var, torch.cat(parts, 1))
+        err = (net.decode(mu_z, data.x) - data.y) * scale
+        out[name] = float((err ** 2).mean())
+    out["mean"] = float(np.mean(list(out.values())))
+    net.train()
+    return out
+
+
+def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: DemoDataset | None = None):
+    """Train on ``ds`` (a validation split is held out unless ``val_ds`` is given).
+
+    Returns
+    -------
+    net : DeepProMPNet (best validation weights), norm : Normalization, history : list of dict
+    """
+    torch.manual_seed(cfg.seed)
+    torch.set_num_threads(cfg.threads)
+    if val_ds is None:
+        n_val = cfg.n_val or max(1, len(ds) // 10)
+        train_ds, val_ds = ds.split(n_val, seed=cfg.seed)
+    else:
+        train_ds = ds
+    norm = fit_normalization(train_ds, cfg.n_points)
+    data = to_tensors(train_ds, norm, cfg.n_points)
+    val = to_tensors(val_ds, norm, cfg.n_points)
+    mcfg = ModelConfig(n_joints=len(ds.joint_names), phase_type=ds.phase_type, latent_dim=cfg.latent_dim,
+                       hidden=cfg.hidden, context_dims=tuple(ds.context_dims.items()), image_shape=ds.image_shape,
+                       sigma_y=cfg.sigma_y, var_floor=cfg.var_floor, phase_harmonics=cfg.phase_harmonics)
+    net = DeepProMPNet(mcfg)
+    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    history, best, best_state = [], math.inf, None
+    t0 = time.perf_counter()
+    n_train = data.y.shape[0]
+    for step in range(1, cfg.steps + 1):
+        idx = torch.randint(0, n_train, (cfg.batch_size,), generator=gen)
+        beta = cfg.beta * min(1.0, step / max(1, cfg.kl_anneal_steps))  # KL annealing
+        loss, nll, kl = loss_fn(net, cfg, data, idx, gen, beta)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if step % cfg.val_every == 0 or step == cfg.steps:
+            v = validation_mse(net, cfg, val, norm)
+            elapsed = time.perf_counter() - t0
+            rec = {"step": step, "loss": loss.item(), "nll": nll, "kl": kl, "beta": beta, "val": v,
+                   "samples_per_s": step * cfg.batch_size / elapsed}
+            history.append(rec)
+            mark = ""
+            if v["mean"] < best:
+                best, best_state, mark = v["mean"], {k: t.clone() for k, t in net.state_dict().items()}, " *best"
+            log(f"step {step:6d}/{cfg.steps}  loss {loss.item():10.3f}  nll {nll:9.3f}  kl {kl:8.3f}  "
+                f"val_mse {v['mean']:.3e} rad²  {rec['samples_per_s']:.0f} traj/s{mark}")
+    net.load_state_dict(best_state)
+    net.eval()
+    if out_path is not None:
+        meta = {
+            "train_config": dataclasses.asdict(cfg),
+            "provenance": {"dataset": ds.source, "n_train": len(train_ds), "n_val": len(val_ds),
+                           "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                           "deepprompt_ros": __version__, "torch": torch.__version__},
+            "metrics": {"best_val_mse_rad2": best, "wall_time_s": time.perf_counter() - t0},
+        }
+        save_checkpoint(out_path, net, norm, ds.joint_names, meta)
+    return net, norm, history
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="train", description="Train a DeepProMP on demonstrations.")
+    src = ap.add_mutually_exclusive_group(required=True)
+    src.add_argument("--data", help="dataset folder of .npz/.csv demonstrations (see deepprompt_ros.core.dataset)")
+    src.add_argument("--builtin", help="built-in generated dataset: bimodal_sine | rhythmic_shake")
+    ap.add_argument("--config", help="training YAML (keys of TrainConfig); defaults if omitted")
+    ap.add_argument("--out", required=True, help="output checkpoint path (.safetensors)")
+    ap.add_argument("--steps", type=int, help="override the number of updates")
+    args = ap.parse_args(argv)
+    try:
+        cfg = TrainConfig.from_yaml(args.config) if args.config else TrainConfig()
+        if args.steps is not None:
+            cfg = dataclasses.replace(cfg, steps=args.steps)
+        ds = load_dataset(args.data) if args.data else builtin_dataset(args.builtin, seed=cfg.seed)
+    except (ValueError, DatasetError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"training on {len(ds)} demonstrations from {ds.source}: joints {list(ds.joint_names)}, "
+          f"phase {ds.phase_type}, contexts {ds.context_dims or 'none'}, images {ds.image_shape or 'none'}")
+    _, _, hist = train(ds, cfg, out_path=args.out)
+    best = min(h["val"]["mean"] for h in hist)
+    print(f"best validation MSE {best:.3e} rad²; checkpoint written to {pathlib.Path(args.out).resolve()}")
+    print(json.dumps({"out": str(pathlib.Path(args.out).resolve()), "best_val_mse_rad2": best}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,224 @@
+"""Core without a trained model: import isolation, aggregator, dataset format, checkpoints, errors."""
+import os
+import pathlib
+import pickle
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from deepprompt_ros.core import dataset as dsm
+from deepprompt_ros.core.checkpoint import CheckpointError, Normalization, load_checkpoint, save_checkpoint
+from deepprompt_ros.core.model import DeepProMPNet, ModelConfig, bayesian_aggregate, phase_features
+from deepprompt_ros.core.primitive import DeepProMP
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def test_core_imports_without_rclpy():
+    code = (
+        "import sys, importlib.abc\n"
+        "class Block(importlib.abc.MetaPathFinder):\n"
+        "    def find_spec(self, name, path, target=None):\n"
+        "        if name.split('.')[0] in ('rclpy', 'rosidl_runtime_py', 'deepprompt_msgs'):\n"
+        "            raise ImportError('blocked ' + name)\n"
+        "sys.meta_path.insert(0, Block())\n"
+        "import pkgutil, importlib, deepprompt_ros.core as c\n"
+        "mods = [m.name for m in pkgutil.iter_modules(c.__path__)]\n"
+        "[importlib.import_module('deepprompt_ros.core.' + m) for m in mods]\n"
+        "assert 'rclpy' not in sys.modules\n"
+        "print(len(mods))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    assert int(out.stdout.strip()) >= 6
+
+
+def _net(seed=0, **kw):
+    torch.manual_seed(seed)
+    cfg = ModelConfig(n_joints=2, latent_dim=4, hidden=16, context_dims=(("obj", 3),), **kw)
+    net = DeepProMPNet(cfg)
+    norm = Normalization(np.zeros(2), np.ones(2), {"obj": np.zeros(3)}, {"obj": np.ones(3)})
+    return net, norm
+
+
+def test_aggregator_equals_sequential_bayes_closed_form():
+    rng = np.random.default_rng(0)
+    mu = rng.normal(size=(5, 3))
+    var = rng.uniform(0.1, 2.0, size=(5, 3))
+    w = rng.uniform(0.0, 2.0, size=5)
+    # Sequential Bayesian updates p_{i+1}(z) ∝ N(z | μ_i, σ²_i / ω_i) p_i(z), starting at N(0, I).
+    m, v = np.zeros(3), np.ones(3)
+    for i in range(5):
+        vi = var[i] / w[i]
+        m, v = (m / v + mu[i] / vi) / (1 / v + 1 / vi), 1 / (1 / v + 1 / vi)
+    got = DeepProMP.aggregate(mu, var, w)
+    np.testing.assert_allclose(got.mean, m, rtol=1e-12)
+    np.testing.assert_allclose(got.var, v, rtol=1e-12)
+    tm, tv = bayesian_aggregate(torch.tensor(mu)[None], torch.tensor(var)[None], torch.tensor(w)[None])
+    np.testing.assert_allclose(tm[0].numpy(), m, rtol=1e-12)
+    np.testing.assert_allclose(tv[0].numpy(), v, rtol=1e-12)
+
+
+def test_zero_weight_removes_element_exactly_and_weight_pulls():
+    net, norm = _net()
+    p = DeepProMP(net, norm, ["a", "b"])
+    x = np.array([0.1, 0.5, 0.9])
+    y = np.array([[0.2, -0.1], [1.0, 0.5], [0.3, 0.3]])
+    full = p.condition(x, y, via_weights=[1.0, 0.0, 1.0])
+    drop = p.condition(x[[0, 2]], y[[0, 2]])
+    np.testing.assert_array_equal(full.mean, drop.mean)
+    np.testing.assert_array_equal(full.var, drop.var)
+    mu_i, _ = p.encode_via_points(x[1:2], y[1:2])
+    dists = [np.linalg.norm(p.condition(x, y, via_weights=[1, w, 1]).mean - mu_i[0]) for w in (0.5, 1, 4, 16)]
+    assert all(a > b for a, b in zip(dists, dists[1:])), dists
+    ctx0 = p.condition(x, y, contexts={"obj": [1, 2, 3]}, context_weights={"obj": [0.0]})
+    np.testing.assert_array_equal(ctx0.mean, p.condition(x, y).mean)
+
+
+def test_variance_shrinks_with_each_added_via_point():
+    net, norm = _net(1)
+    p = DeepProMP(net, norm, ["a", "b"])
+    rng = np.random.default_rng(1)
+    x, y = rng.uniform(0, 1, 8), rng.normal(size=(8, 2))
+    vars_ = [p.condition(x[:n], y[:n]).var for n in range(0, 9)]
+    for a, b in zip(vars_, vars_[1:]):
+        assert np.all(b < a)
+
+
+def test_rhythmic_phase_features_are_periodic():
+    x = np.array([0.0, 1.0, 0.25])
+    f = phase_features(x, "rhythmic", 2)
+    np.testing.assert_allclose(f[0], f[1], atol=1e-12)
+    assert f.shape == (3, 4)
+
+
+def test_operation_errors_say_what_is_expected():
+    net, norm = _net()
+    p = DeepProMP(net, norm, ["a", "b"], name="reach")
+    with pytest.raises(ValueError, match="3 joint values; primitive 'reach' has 2 joints"):
+        p.condition([0.5], [[0.1, 0.2, 0.3]])
+    with pytest.raises(ValueError, match="NaN or inf"):
+        p.condition([0.5], [[np.nan, 0.2]])
+    with pytest.raises(ValueError, match=r"outside \[0, 1\]"):
+        p.condition([1.5], [[0.1, 0.2]])
+    with pytest.raises(ValueError, match="NaN or inf"):
+        p.condition([np.inf], [[0.1, 0.2]])
+    with pytest.raises(ValueError, match="takes no context 'camera'"):
+        p.condition(contexts={"camera": [1.0]})
+    with pytest.raises(ValueError, match=r"3 values per vector"):
+        p.condition(contexts={"obj": [1.0, 2.0]})
+    with pytest.raises(ValueError, match="importance weights must be finite and >= 0"):
+        p.condition([0.5], [[0.1, 0.2]], via_weights=[-1.0])
+    with pytest.raises(ValueError, match="at least one via-point"):
+        p.refine(p.prior(), [], np.zeros((0, 2)))
+    with pytest.raises(ValueError, match="number of samples"):
+        p.sample(p.prior(), [0.0, 1.0], 0)
+    with pytest.raises(ValueError, match="both phases"):
+        p.condition(via_x=[0.5])
+
+
+# ------------------------------------------------------------------------- dataset format
+def _demo(name="d0", n=20, **kw):
+    t = np.linspace(0, 2, n)
+    q = np.stack([np.sin(t), np.cos(t)], 1)
+    return dsm.demo_from_arrays(name, t, q, ["j1", "j2"], **kw)
+
+
+def test_dataset_roundtrip_npz_and_csv(tmp_path):
+    d = _demo(contexts={"obj": [0.1, 0.2, 0.3]}, images=np.zeros((2, 8, 8, 3), np.uint8))
+    dsm.save_demo(d, tmp_path / "a.npz")
+    back = dsm.load_demo(tmp_path / "a.npz")
+    np.testing.assert_array_equal(back.q, d.q)
+    np.testing.assert_array_equal(back.contexts["obj"], [[0.1, 0.2, 0.3]])
+    assert back.images.shape == (2, 8, 8, 3) and back.joint_names == ("j1", "j2")
+    csv = tmp_path / "demo_b.csv"
+    csv.write_text("t,j1,j2\n0,0,1\n0.5,0.1,0.9\n1.0,0.2,0.8\n")
+    c = dsm.load_csv(csv)
+    assert c.q.shape == (3, 2) and c.name == "demo_b"
+    with pytest.raises(dsm.DatasetError, match="demo_b': context modalities"):
+        dsm.load_dataset(tmp_path)  # one demo has a context, the other not
+    (tmp_path / "a.npz").unlink()
+    ds = dsm.load_dataset(tmp_path)
+    assert len(ds) == 1 and ds.joint_names == ("j1", "j2")
+
+
+@pytest.mark.parametrize("mutate, message", [
+    (lambda t, q: (t, np.where(np.arange(q.size).reshape(q.shape) == 7, np.nan, q)), "NaN or inf"),
+    (lambda t, q: (t[:-1], q), "ragged shapes"),
+    (lambda t, q: (np.r_[t[:5], t[4], t[6:]], q), "not strictly increasing"),
+])
+def test_bad_demonstrations_are_refused_with_demo_name(mutate, message):
+    t = np.linspace(0, 1, 10)
+    q = np.zeros((10, 2))
+    t2, q2 = mutate(t, q)
+    with pytest.raises(dsm.DatasetError, match=f"demonstration 'bad_one'.*{message}"):
+        dsm.demo_from_arrays("bad_one", t2, q2, ["j1", "j2"])
+
+
+def test_dataset_refuses_mismatched_joint_names(tmp_path):
+    a = _demo("a")
+    b = dsm.demo_from_arrays("b", a.t, a.q, ["j1", "elbow"])
+    with pytest.raises(dsm.DatasetError, match="demonstration 'b': joint names"):
+        dsm.DemoDataset((a, b))
+    dsm.save_demo(a, tmp_path / "a.npz")
+    np.savez(tmp_path / "broken.npz", t=np.arange(3.0))
+    with pytest.raises(dsm.DatasetError, match="broken.npz.*missing arrays"):
+        dsm.load_dataset(tmp_path)
+
+
+def test_bimodal_sine_has_two_modes_crossing_zero():
+    ds = dsm.bimodal_sine(40, seed=3)
+    y = np.stack([d.resampled(101)[:, 0] for d in ds.demos])
+    assert np.all(np.abs(y[:, [0, 50, 100]]) < 0.05)
+    quarter = y[:, 25]
+    assert (quarter > 0.7).sum() >= 10 and (quarter < -0.7).sum() >= 10
+    assert not np.any(np.abs(quarter) < 0.7)
+
+
+# ------------------------------------------------------------------------- checkpoints
+def test_checkpoint_roundtrip_carries_config_and_normalization(tmp_path):
+    net, norm = _net()
+    path = save_checkpoint(tmp_path / "m.safetensors", net, norm, ["a", "b"], {"provenance": {"dataset": "x"}})
+    ck = load_checkpoint(path)
+    assert ck.config == net.cfg and ck.joint_names == ("a", "b")
+    assert ck.metadata["provenance"]["dataset"] == "x"
+    p1, p2 = DeepProMP(net, norm, ["a", "b"]), DeepProMP.from_checkpoint(path)
+    x = np.linspace(0, 1, 7)
+    lat = p1.condition([0.3], [[0.1, 0.2]], contexts={"obj": [1, 0, 0]})
+    np.testing.assert_allclose(p2.mean_trajectory(lat, x), p1.mean_trajectory(lat, x), atol=1e-12)
+
+
+class _Evil:
+    def __reduce__(self):
+        return (os.system, (f"touch {_Evil.marker}",))
+
+
+def test_malicious_pickle_checkpoint_is_refused_and_never_executed(tmp_path):
+    marker = tmp_path / "pwned"
+    _Evil.marker = marker
+    evil = tmp_path / "evil.safetensors"
+    with open(evil, "wb") as f:
+        pickle.dump({"state_dict": _Evil()}, f)
+    torch.save({"x": _Evil()}, tmp_path / "evil.pt")
+    for path in (evil, tmp_path / "evil.pt"):
+        with pytest.raises(CheckpointError, match="not a safetensors file"):
+            load_checkpoint(path)
+    assert not marker.exists()
+
+
+def test_tampered_checkpoints_are_refused(tmp_path):
+    from safetensors.torch import save_file
+
+    net, norm = _net()
+    good = save_checkpoint(tmp_path / "m.safetensors", net, norm, ["a", "b"])
+    with pytest.raises(CheckpointError, match="does not exist"):
+        load_checkpoint(tmp_path / "nope.safetensors")
+    save_file({"x": torch.zeros(2)}, str(tmp_path / "other.safetensors"), metadata={"format": "other"})
+    with pytest.raises(CheckpointError, match="has format 'other'"):
+        load_checkpoint(tmp_path / "other.safetensors")
+    data = bytearray(good.read_bytes())
+    (tmp_path / "trunc.safetensors").write_bytes(bytes(data[: len(data) // 2]))
+    with pytest.raises(CheckpointError):
+        load_checkpoint(tmp_path / "trunc.safetensors")
