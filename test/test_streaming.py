@@ -385,3 +385,58 @@ def test_check_limits_reports_violations():
     q[4] = 1.5
     r = check_limits(q, qd, np.zeros((5, 1)), DT, limits)
     assert r.position_excess == pytest.approx(0.5) and not r.ok()
+
+
+def test_continuous_joint_without_position_limits_streams_to_any_angle():
+    limits = JointLimits([-np.inf, -1.0], [np.inf, 1.0], [2.0, 1.0], [5.0, 3.0], [50.0, 30.0])
+    streamer = RuckigStreamer(limits, DT)
+    streamer.start([0.0, 0.0])
+    rec = Recorder([0.0, 0.0])
+    for _ in range(10000):
+        s = streamer.step([10.0, 0.5])
+        rec.add(s)
+        if s.status == StreamStatus.REACHED:
+            break
+    assert s.q == pytest.approx([10.0, 0.5], abs=1e-12) and not s.clamped.any()
+    assert rec.report(limits).ok(rtol=1e-6)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_random_limits_references_switches_and_stops_never_violate_limits(seed):
+    rng = np.random.default_rng(seed)
+    d = int(rng.integers(2, 8))
+    lo, hi = -rng.uniform(0.3, 3, d), rng.uniform(0.3, 3, d)
+    limits = JointLimits(lo, hi, rng.uniform(0.3, 2, d), rng.uniform(0.4, 10, d), rng.uniform(5, 200, d))
+    streamer = RuckigStreamer(limits, DT, position_margin=0.01)
+    q0 = rng.uniform(lo, hi)
+    streamer.start(q0)
+    freqs = np.array([1, 2, 3])
+
+    def family(amps, offs, phase):  # sums of harmonics, often outside limits / infeasible
+        return lambda x: offs + np.einsum("kd,tk->td", amps,
+                                          np.sin(2 * np.pi * (np.atleast_1d(x)[:, None] * freqs + phase)))
+
+    fns = [family(rng.uniform(0, 2, (3, d)), rng.uniform(lo, hi), 0.0),
+           family(rng.uniform(0, 1, (3, d)), rng.uniform(lo, hi), rng.uniform())]
+    clock = PhaseClock.rhythmic_clock(DT, rng.uniform(1, 6))
+    rec = Recorder(q0)
+    which = 0
+    for k in range(2500):
+        if k % 700 == 350:
+            which = 1 - which                                        # splice
+        if k == 1000:
+            clock.set_rate(rng.uniform(0.05, 1.0), ramp_time=0.2)    # temporal modulation
+        if k == 2200:
+            streamer.request_stop()
+        fn = fns[which]
+        s = streamer.track(lambda ahead: reference_state(fn, clock.peek(ahead), periodic=True))
+        clock.tick()
+        rec.add(s)
+        assert s.status != StreamStatus.ERROR, s.error
+    for _ in range(20000):
+        if rec.status[-1] == StreamStatus.STOPPED:
+            break
+        rec.add(streamer.stop_step())
+    assert rec.status[-1] == StreamStatus.STOPPED
+    report = rec.report(limits)
+    assert report.ok(rtol=1e-6, position_tol=1e-9), report

@@ -180,8 +180,8 @@ class ProMP:
     def fit(self, Y, x, contexts=None) -> "ProMP":
         """Fit the weight distribution (and the joint distribution with contexts) to demos.
 
-        Per demonstration i, ridge regression W_i = (ΦᵀΦ + r·I)^-1 ΦᵀY_i (Paraschos 2018,
-        Sec. 3; r = ``ridge`` · mean diag(ΦᵀΦ)); then μ_w = mean_i w_i and
+        Per demonstration i, ridge regression W_i = (ΦᵀΦ + r·I)^-1 ΦᵀY_i (the usual ProMP
+        weight estimate; r = ``ridge`` · mean diag(ΦᵀΦ)); then μ_w = mean_i w_i and
         Σ_w = cov_i w_i + λI. σ²_y per joint is the mean squared residual of the regressions.
 
         Why λ, and its value: with N demonstrations the sample covariance has rank <= N - 1
@@ -432,7 +432,8 @@ class ProMP:
     # operations
     # ---------------------------------------------------------------------------------
     def condition(self, x_via, y_via, noise_var=1e-6, joint_mask=None) -> "ProMP":
-        """Condition on via-points (closed form; Paraschos et al. 2013, Eq. (5)-(6)).
+        """Condition on via-points (closed-form Gaussian conditioning, Paraschos et al. 2013,
+        Sec. 2.2).
 
         With H stacking the rows of Ψ(x_i) of the observed joints and R = diag(noise_var)::
 
@@ -540,7 +541,8 @@ class ProMP:
 
     def blend(self, other: "ProMP", omega_fn: Callable[[np.ndarray], np.ndarray] | np.ndarray,
               x) -> TrajectoryDistribution:
-        """ProMP blending (Paraschos et al. 2013, Sec. 2.2): per phase, the product of the two
+        """ProMP blending (Paraschos et al. 2013, Sec. 2.2; the DeepProMP paper, Sec. III-C,
+        applies the same exponent weighting to q(z)): per phase, the product of the two
         Gaussians of y raised to ω(x) and 1 - ω(x)::
 
             Σ_b^-1 = ω Σ_1^-1 + (1 - ω) Σ_2^-1,   μ_b = Σ_b (ω Σ_1^-1 μ_1 + (1 - ω) Σ_2^-1 μ_2)

@@ -987,12 +987,15 @@ class RuckigStreamer:
         joints = sorted(set(far) | set(approaching))
         ahead = max([self._j_traj[j].duration for j in far]
                     + ([self._appr[0] - self._appr[1]] if self._appr is not None else []))
-        for _ in range(4):
+        for iteration in range(4):
             target, clamped_a = self._reference_target(reference, ahead)
             longest = max(self._plan_joint(j, target, ahead).duration for j in joints)
             if longest <= ahead * (1 + 1e-9):
                 break
-            ahead = longest
+            if iteration < 3:
+                ahead = longest
+        # not converged: the plans reach reference(ahead) late; the approach then ends at
+        # `ahead` and TRACKING (or a new interception) takes over
         for j in joints:
             self._j_traj[j], self._traj_c[j] = self._traj_c[j], self._j_traj[j]
             p[j], v[j], a[j] = (c[0] for c in self._traj_c[j].at_time(self.dt)[:3])
