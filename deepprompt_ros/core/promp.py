@@ -145,9 +145,26 @@ class ProMP:
         array, shape (T, n)
         """
         x = self._check_phase(x, "x")
-        return self._basis(x, deriv)
+        if deriv not in (0, 1, 2):
+            raise ValueError(f"deriv must be 0, 1 or 2; got {deriv}")
+        return self._basis(x, deriv).copy()
 
     def _basis(self, x: np.ndarray, deriv: int = 0) -> np.ndarray:
+        """φ(x) (or a derivative); the last few phase grids are cached (read-only arrays), as
+        the same grid is typically evaluated again and again (mean, std, every condition)."""
+        key = (deriv, x.tobytes())
+        cache = self.__dict__.setdefault("_basis_cache", {})
+        hit = cache.get(key)
+        if hit is not None:
+            return hit
+        phi = self._basis_eval(x, deriv)
+        phi.setflags(write=False)
+        if len(cache) >= 8:
+            cache.pop(next(iter(cache)))
+        cache[key] = phi
+        return phi
+
+    def _basis_eval(self, x: np.ndarray, deriv: int) -> np.ndarray:
         u = x[:, None] - self._centers[None, :]
         if self.rhythmic:
             w = 2.0 * math.pi
@@ -441,8 +458,11 @@ class ProMP:
             μ' = μ + K (y - H μ)
             Σ' = Σ - K H Σ
 
-        computed with one linear solve (no explicit inverse). Σ is the covariance of the
-        stacked [w; c], so a context distribution is updated consistently.
+        computed from the Cholesky factor L L^T = R + H Σ Hᵀ (no inverse):
+        [q, Q] = L^-1 [y - Hμ, H Σ], μ' = μ + Qᵀ q, Σ' = Σ - Qᵀ Q; the update of Σ is kept as
+        the factor Q until the full matrix is needed (std needs only its diagonal blocks).
+        Σ is the covariance of the stacked [w; c], so a context distribution is updated
+        consistently.
 
         Parameters
         ----------
@@ -473,8 +493,9 @@ class ProMP:
             raise ValueError("noise_var must be finite and >= 0")
         D = d * n
         Phi_v = self._basis(x_via)                                   # (V, n)
+        if self._cov_q is not None and self._cov_q.shape[0] > self._cov_mat.shape[0] // 2:
+            _ = self._cov  # long chains of conditioning: fold the factor into the matrix
         Sigma0, Q0 = self._cov_mat, self._cov_q   # Σ = Σ0 - Q0ᵀ Q0
-        Dz = Sigma0.shape[0]
 
         def times_Ht(S):  # S Hᵀ for all (via-point, joint) pairs: column (v, j) = S[:, block j] φ(x_v)
             rows = S.shape[0]
@@ -496,7 +517,12 @@ class ProMP:
         jitter = 1e-12 * max(float(np.mean(np.diag(Ssys))), 1e-300)
         Ssys[np.diag_indices_from(Ssys)] += jitter
         # Ssys = L Lᵀ;  [q, Q] = L^-1 [y - Hμ, H Σ]:  μ' = μ + Qᵀ q,  Σ' = Σ - Qᵀ Q
-        L = np.linalg.cholesky(Ssys)
+        try:
+            L = np.linalg.cholesky(Ssys)
+        except np.linalg.LinAlgError:
+            raise ValueError("the via-points cannot all be met exactly (e.g. the same phase twice "
+                             "with different values, or noise_var = 0 on a primitive that is "
+                             "already pinned there); use noise_var > 0") from None
         X = np.linalg.solve(L, np.column_stack([innovation, SH.T]))     # (R, 1 + Dz)
         mean = self._mean + X[:, 1:].T @ X[:, 0]
         Q = X[:, 1:] if Q0 is None else np.vstack([Q0, X[:, 1:]])
