@@ -5,8 +5,9 @@ A streaming node calls this module from its control timer (e.g. 1 kHz)::
     clock = PhaseClock.linear(dt, duration)            # or rhythmic_clock / from_tau / ...
     streamer = RuckigStreamer(limits, dt)
     streamer.start(q_measured, qd_measured)
+    reference = clock_reference(mean_fn, clock)        # reference(ahead) -> (q, qd, qdd)
     # every tick:
-    out = streamer.track(lambda ahead: reference_state(mean_fn, clock.peek(ahead)))
+    out = streamer.track(reference)
     clock.tick()                                       # clock time = time of out
     publish(out.q, out.qd, out.qdd)                    # the limited command
 
@@ -54,7 +55,11 @@ sample's |qd| ≤ v_max and |qdd| ≤ a_max, successive samples satisfy
 |Δq|/dt ≤ v_max, |Δqd|/dt ≤ a_max and |Δqdd|/dt ≤ j_max (finite-difference jerk of the reported
 accelerations; the continuous trajectory between samples is jerk-limited piecewise, this is the
 per-sample consequence), and lower ≤ q ≤ upper. The first sample after :meth:`start` is checked
-against the measured state given to ``start``.
+against the measured state given to ``start``. Not guaranteed: anything about a state given to
+``start`` that is outside the limits or cannot stop inside them (``start`` raises); and the
+exact brake check is skipped for joints farther from their limits than a conservative
+stopping-distance bound (see ``_guard_zone``). If ruckig rejects a tick's input, that tick
+brakes all joints (status ERROR) and the next tick plans again.
 """
 from __future__ import annotations
 
@@ -72,6 +77,7 @@ __all__ = [
     "PhaseClock",
     "ReferenceState",
     "reference_state",
+    "clock_reference",
     "StreamStatus",
     "StreamState",
     "RuckigStreamer",
@@ -554,6 +560,21 @@ def reference_state(target_fn: Callable[[np.ndarray], np.ndarray], phase: PhaseS
     qd = d1 * phase.x_dot
     qdd = d2 * phase.x_dot ** 2 + d1 * phase.x_ddot
     return ReferenceState(q.copy(), qd, qdd)
+
+
+def clock_reference(target_fn: Callable[[np.ndarray], np.ndarray], clock: PhaseClock, *,
+                    periodic: bool | None = None, h: float = 1e-3
+                    ) -> Callable[[float], ReferenceState]:
+    """The ``reference(ahead)`` callable of :meth:`RuckigStreamer.track` for a primitive
+    ``target_fn`` (phases (k,) -> positions (k, d)) driven by ``clock``: the reference state
+    at the phase the clock predicts ``ahead`` seconds after its current tick
+    (:meth:`PhaseClock.peek`), by :func:`reference_state`. ``periodic`` defaults to the
+    clock's ``rhythmic``."""
+    wrap = clock.rhythmic if periodic is None else bool(periodic)
+
+    def reference(ahead: float) -> ReferenceState:
+        return reference_state(target_fn, clock.peek(ahead), periodic=wrap, h=h)
+    return reference
 
 
 # --------------------------------------------------------------------------------------------
