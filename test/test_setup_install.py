@@ -91,7 +91,11 @@ def test_launcher_loads_its_entry_point(name):
     check it resolved the very function setup.py names, from outside the repo."""
     value = _entry_points()[name]
     module, attr = value.split(":")
-    if importlib.util.find_spec(module) is None:
+    try:
+        written = importlib.util.find_spec(module) is not None
+    except ModuleNotFoundError:  # parent package missing
+        written = False
+    if not written:
         pytest.skip(f"{module} is not written yet")
     launcher = os.path.join(PREFIX, "lib", "deepprompt_ros", name)
     head = attr.split(".")[0]

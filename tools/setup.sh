@@ -101,7 +101,7 @@ else
   # full pip output goes to a log; progress lines are echoed
   "$PY" -m pip install --disable-pip-version-check --progress-bar off -r requirements.txt 2>&1 \
     | tee "$STAMPS/pip-install.log" \
-    | { grep --line-buffered -E '^(Collecting|Installing collected|Successfully installed|ERROR|error)' || true; } \
+    | { grep --line-buffered -E '^(Installing collected|Successfully installed|ERROR|error)' | cut -c1-150 || true; } \
     || { tail -n 30 "$STAMPS/pip-install.log" >&2; die "pip install -r requirements.txt failed; full log: $STAMPS/pip-install.log"; }
   write_stamp requirements "$REQ_HASH"
   say "requirements installed"
