@@ -28,7 +28,6 @@ setup(
     maintainer_email="maintainers@deepprompt-ros.org",
     description="Deep Probabilistic Movement Primitives served to ROS 2 controllers.",
     license="BSD-3-Clause",
-    tests_require=["pytest"],
     entry_points={
         "console_scripts": [
             "primitive_server = deepprompt_ros.ros.primitive_server:main",

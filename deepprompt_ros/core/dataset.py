@@ -347,7 +347,15 @@ def rhythmic_shake(n_demos: int = 30, n_points: int = 100, n_joints: int = 7, se
     return DemoDataset(tuple(demos), source=f"rhythmic_shake(seed={seed})")
 
 
-BUILTIN = {"bimodal_sine": bimodal_sine, "rhythmic_shake": rhythmic_shake}
+def gen3_lite_reach(seed: int = 0, **kwargs) -> DemoDataset:
+    """Reaching demonstrations on the Kinova Gen3 lite with the object position as context
+    (see :mod:`deepprompt_ros.core.reach`; imported lazily: it needs pinocchio)."""
+    from .reach import reach_demos
+
+    return reach_demos("gen3_lite", seed=seed, **kwargs)
+
+
+BUILTIN = {"bimodal_sine": bimodal_sine, "rhythmic_shake": rhythmic_shake, "gen3_lite_reach": gen3_lite_reach}
 
 
 def builtin_dataset(name: str, **kwargs) -> DemoDataset:

@@ -60,6 +60,9 @@ class TrainConfig:
     p_via_points: float = 0.7
     p_context: float = 0.5
     p_empty: float = 0.1
+    consistency_weight: float = 0.0
+    prior_kl_weight: float = 0.0
+    consistency_tol: float = 0.15
     n_val: int = 0  # 0 → 10 % of the demonstrations (at least 1)
     val_every: int = 250
     val_via_points: int = 5
@@ -72,6 +75,8 @@ class TrainConfig:
             (self.latent_dim >= 1 and self.hidden >= 1, "latent_dim and hidden must be >= 1"),
             (self.sigma_y > 0 and self.var_floor > 0, "sigma_y and var_floor must be > 0"),
             (self.beta >= 0, f"beta must be >= 0, got {self.beta}"),
+            (self.consistency_weight >= 0 and self.consistency_tol > 0,
+             "consistency_weight must be >= 0 and consistency_tol > 0"),
             (self.lr > 0, f"lr must be > 0, got {self.lr}"),
             (self.batch_size >= 1 and self.steps >= 1, "batch_size and steps must be >= 1"),
             (self.n_points >= 2, f"n_points must be >= 2, got {self.n_points}"),
@@ -201,8 +206,8 @@ def encode_all(net: DeepProMPNet, data: TensorData, idx: torch.Tensor):
 def sample_subset_weights(cfg: TrainConfig, data: TensorData, idx: torch.Tensor, kinds, gen: torch.Generator):
     """Which inputs each trajectory of the batch is given this update (1 = given, 0 = withheld).
 
-    Via-points: with probability p_via_points, a uniformly random count in [1, max_via_points] of
-    randomly placed points; each context modality / the images: with probability p_context;
+    Via-points: with probability p_via_points, a random count in [1, max_via_points] (skewed towards
+    small counts) of randomly placed points; each context modality / the images: with probability p_context;
     with probability p_empty nothing at all (the prior).
 
     Returns
@@ -216,7 +221,10 @@ def sample_subset_weights(cfg: TrainConfig, data: TensorData, idx: torch.Tensor,
         n = sl.stop - sl.start
         if kind == "via":
             use = (torch.rand(b, generator=gen) < cfg.p_via_points) & ~empty
-            count = torch.randint(1, max(cfg.max_via_points, 1) + 1, (b,), generator=gen)
+            # count in [1, max_via_points], skewed towards few points (count = 1 + ⌊u² max⌋): small
+            # sets are where a primitive must stay uncertain, and they are the rare case otherwise
+            u = torch.rand(b, generator=gen)
+            count = 1 + (u * u * cfg.max_via_points).long().clamp_max(max(cfg.max_via_points - 1, 0))
             rank = torch.rand(b, t, generator=gen).argsort(1).argsort(1)  # random rank of each point
             sub = (rank < count.unsqueeze(1)) & use.unsqueeze(1)
             parts_sub.append(sub.float())
@@ -229,8 +237,38 @@ def sample_subset_weights(cfg: TrainConfig, data: TensorData, idx: torch.Tensor,
     return torch.cat(parts_sub, 1), torch.cat(parts_all, 1)
 
 
+def consistent_demos(cfg: TrainConfig, data: TensorData, idx, kinds, w_sub) -> torch.Tensor:
+    """C[i, j] = True when demo j of the batch agrees with everything demo i's subset gives:
+    its joint positions at i's via-points (within ``consistency_tol``, normalized units), its
+    contexts of the given modalities (same tolerance), and — images being high-dimensional —
+    j == i when i's images are given. C[i, i] is always True; an empty subset admits every demo.
+    """
+    b = idx.shape[0]
+    ok = torch.ones(b, b, dtype=torch.bool)
+    for kind, sl in kinds:
+        w = w_sub[:, sl] > 0  # (B, n)
+        if kind == "via":
+            y = data.y[idx]  # (B, T, d)
+            dev = (y.unsqueeze(0) - y.unsqueeze(1)).abs().amax(-1)  # (B_i, B_j, T)
+            dev = torch.where(w.unsqueeze(1), dev, torch.zeros(()))
+            ok &= dev.amax(-1) <= cfg.consistency_tol
+        elif kind == "image":
+            ok &= ~w[:, 0:1] | torch.eye(b, dtype=torch.bool)
+        else:
+            c = data.ctx[kind][idx]  # (B, M, c)
+            dev = (c.unsqueeze(0) - c.unsqueeze(1)).abs().amax(-1)  # (B_i, B_j, M)
+            dev = torch.where(w.unsqueeze(1), dev, torch.zeros(()))
+            ok &= dev.amax(-1) <= cfg.consistency_tol
+    return ok | torch.eye(b, dtype=torch.bool)
+
+
 def loss_fn(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, idx, gen, beta: float):
-    """Negative ELBO per trajectory (mean over the batch) and its parts."""
+    """Negative ELBO per trajectory (mean over the batch) plus the sample-consistency term.
+
+    Returns
+    -------
+    loss (tensor), nll, kl, consistency (floats, batch means)
+    """
     mu, var, kinds = encode_all(net, data, idx)
     w_sub, w_all = sample_subset_weights(cfg, data, idx, kinds, gen)
     mu_s, var_s = bayesian_aggregate(mu, var, w_sub)
@@ -239,13 +277,29 @@ def loss_fn(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, idx, gen, bet
         mu_a, var_a = bayesian_aggregate(mu, var, w_all)
         z = mu_a + torch.randn(mu_a.shape, generator=gen) * var_a.sqrt()  # ONE z per trajectory
         kl = gaussian_kl(mu_a, var_a, mu_s, var_s)
+        if cfg.prior_kl_weight > 0:  # VAE term: the posteriors of whole demos fill the prior
+            zeros = torch.zeros(())
+            kl = kl + cfg.prior_kl_weight * gaussian_kl(mu_a, var_a, zeros, zeros + 1.0)
     else:
         z = mu_s + torch.randn(mu_s.shape, generator=gen) * var_s.sqrt()
         kl = (w_sub * expected_log_ratio(mu_s.unsqueeze(1), var_s.unsqueeze(1), mu, var)).sum(1)
     y_hat = net.decode(z, data.x)
     nll = 0.5 * ((y - y_hat) ** 2).sum((1, 2)) / cfg.sigma_y ** 2
-    loss = (nll + beta * kl).mean()
-    return loss, nll.mean().item(), kl.mean().item()
+    loss = nll + beta * kl
+    cons = torch.zeros(())
+    if cfg.consistency_weight > 0:
+        # Sample consistency: a trajectory decoded from z ~ q(z | subset) must look like SOME
+        # demonstration that agrees with the subset (not necessarily the one it came from). The
+        # decoder thus maps every region q(z | subset) covers onto a demonstrated mode instead of
+        # in between; z is detached so that only the KL term shapes q(z | subset).
+        z_s = (mu_s + torch.randn(mu_s.shape, generator=gen) * var_s.sqrt()).detach()
+        y_s = net.decode(z_s, data.x)  # (B, T, d)
+        err = ((y_s.unsqueeze(1) - y.unsqueeze(0)) ** 2).sum((2, 3))  # (B_i, B_j)
+        ok = consistent_demos(cfg, data, idx, kinds, w_sub)
+        err = torch.where(ok, err, torch.full((), float("inf")))
+        cons = 0.5 * err.amin(1) / cfg.sigma_y ** 2
+        loss = loss + cfg.consistency_weight * cons
+    return loss.mean(), nll.mean().item(), kl.mean().item(), cons.mean().item()
 
 
 @torch.no_grad()
@@ -311,14 +365,14 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
     for step in range(1, cfg.steps + 1):
         idx = torch.randint(0, n_train, (cfg.batch_size,), generator=gen)
         beta = cfg.beta * min(1.0, step / max(1, cfg.kl_anneal_steps))  # KL annealing
-        loss, nll, kl = loss_fn(net, cfg, data, idx, gen, beta)
+        loss, nll, kl, cons = loss_fn(net, cfg, data, idx, gen, beta)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
         if step % cfg.val_every == 0 or step == cfg.steps:
             v = validation_mse(net, cfg, val, norm)
             elapsed = time.perf_counter() - t0
-            rec = {"step": step, "loss": loss.item(), "nll": nll, "kl": kl, "beta": beta, "val": v,
+            rec = {"step": step, "loss": loss.item(), "nll": nll, "kl": kl, "consistency": cons, "beta": beta, "val": v,
                    "samples_per_s": step * cfg.batch_size / elapsed}
             history.append(rec)
             mark = ""
@@ -344,7 +398,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="train", description="Train a DeepProMP on demonstrations.")
     src = ap.add_mutually_exclusive_group(required=True)
     src.add_argument("--data", help="dataset folder of .npz/.csv demonstrations (see deepprompt_ros.core.dataset)")
-    src.add_argument("--builtin", help="built-in generated dataset: bimodal_sine | rhythmic_shake")
+    src.add_argument("--builtin", help="built-in generated dataset: bimodal_sine | rhythmic_shake | gen3_lite_reach")
     ap.add_argument("--config", help="training YAML (keys of TrainConfig); defaults if omitted")
     ap.add_argument("--out", required=True, help="output checkpoint path (.safetensors)")
     ap.add_argument("--steps", type=int, help="override the number of updates")

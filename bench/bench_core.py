@@ -1,0 +1,119 @@
+"""Core benchmarks: conditioning vs closed-form ProMP, refinement, training throughput.
+
+Usage: python bench/bench_core.py [--quick]
+Prints a table, then as the LAST line space-separated name=value pairs.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import pathlib
+import statistics
+import sys
+import time
+
+import numpy as np
+import torch
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from deepprompt_ros.core.dataset import bimodal_sine  # noqa: E402
+from deepprompt_ros.core.primitive import DeepProMP  # noqa: E402
+from deepprompt_ros.core.promp import ProMP  # noqa: E402
+from deepprompt_ros.core.reach import reach_demos  # noqa: E402
+from deepprompt_ros.core.train import TrainConfig, train  # noqa: E402
+
+
+def timed(fn, repeats: int) -> list[float]:
+    out = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        out.append((time.perf_counter() - t0) * 1e3)
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true", help="few repetitions (smoke run)")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    reps = 50 if args.quick else 2000
+    prim = DeepProMP.from_checkpoint(ROOT / "models" / "gen3_lite_reach.safetensors")
+    ds = reach_demos(n_demos=30 if args.quick else 120, seed=0)
+    test = reach_demos(n_demos=10, seed=4242)
+    x100 = np.linspace(0, 1, 100)
+    Y = np.stack([d.resampled(100) for d in ds.demos])
+    promp = ProMP(prim.n_joints, n_basis=20).fit(Y, x100)
+    d0 = test.demos[0]
+    q0 = d0.resampled(100)
+    idx = [0, 20, 45, 70, 99]
+    xv, yv, obj = x100[idx], q0[idx], d0.contexts["object"][0]
+
+    def deep():
+        lat = prim.condition(xv, yv, contexts={"object": obj})
+        return prim.mean_trajectory(lat, x100)
+
+    def pro():
+        return promp.condition(xv, yv, noise_var=1e-6).mean_trajectory(x100)
+
+    deep(), pro()
+    # interleave so both see the same machine load
+    t_deep, t_pro = [], []
+    for _ in range(reps // 50):
+        t_deep += timed(deep, 50)
+        t_pro += timed(pro, 50)
+    condition_ms = statistics.median(t_deep)
+    promp_ms = statistics.median(t_pro)
+
+    # refinement: reachable via-point sets (decoded from random latents) and held-out demo points
+    rng = np.random.default_rng(0)
+    errs, steps, times, unreachable = [], [], [], 0
+    trials = 10 if args.quick else 100
+    for i in range(trials):
+        if i % 2 == 0:
+            n = int(rng.integers(1, 4))
+            xs = np.sort(rng.uniform(0.05, 0.95, n))
+            ys = prim.decode(rng.standard_normal(prim.latent_dim), xs)
+        else:
+            d = test.demos[i % len(test.demos)]
+            q = d.resampled(100)
+            k = [int(j) for j in sorted(rng.choice(np.arange(5, 95), 2, replace=False))]
+            xs, ys = x100[k], q[k]
+        post = prim.condition(xs, ys)
+        t0 = time.perf_counter()
+        res = prim.refine(post, xs, ys, max_iterations=200, tol=1e-6)
+        times.append((time.perf_counter() - t0) * 1e3)
+        if res.reachable:
+            errs.append(res.max_error)
+            steps.append(res.iterations)
+        else:
+            unreachable += 1
+
+    # training throughput (batch 16, as in the paper) on the bimodal sine set
+    cfg = TrainConfig(steps=60 if args.quick else 600, val_every=10_000, threads=2)
+    t0 = time.perf_counter()
+    _, _, hist = train(bimodal_sine(100, seed=0), cfg, log=lambda s: None)
+    train_sps = hist[-1]["samples_per_s"]
+
+    rows = [
+        ("condition_ms", condition_ms, "5 via-points + object context, decode 100-step mean (median)"),
+        ("promp_condition_ms", promp_ms, "closed-form ProMP, same 5 via-points, 100-step mean (median)"),
+        ("condition_ratio", condition_ms / promp_ms, "target <= 1"),
+        ("refine_max_err_rad", max(errs) if errs else float("nan"), f"max over {len(errs)} reachable sets, target <= 1e-6"),
+        ("refine_steps", max(steps) if steps else -1, "max iterations, target <= 200"),
+        ("refine_ms", statistics.median(times), "median wall time, target <= 50"),
+        ("refine_ms_p90", float(np.percentile(times, 90)), "90th percentile"),
+        ("refine_unreachable", unreachable, f"of {trials} sets judged unreachable"),
+        ("train_samples_per_s", train_sps, "trajectories/s, batch 16, 2 threads"),
+    ]
+    print(f"{'metric':24s} {'value':>12s}  note")
+    for name, val, note in rows:
+        print(f"{name:24s} {val:12.4g}  {note}")
+    print(" ".join(f"{n}={v:.6g}" for n, v, _ in rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
