@@ -1,0 +1,465 @@
+"""sim_bridge: one simulated arm (PyBullet, :class:`~deepprompt_ros.core.sim.Simulation`) over ROS 2.
+
+Run: ``ros2 run deepprompt_ros sim_bridge --ros-args --params-file config/sim_bridge.yaml``
+(or ``python -m deepprompt_ros.ros.sim_bridge ...``).
+
+Interfaces (names relative to the node's namespace; parameters in ``PARAMETERS`` below):
+
+* publishes ``joint_states`` (sensor_msgs/JointState: name, position, velocity, effort) once per
+  physics step, i.e. at ``rate_hz`` × ``real_time_factor`` per wall-clock second;
+* publishes ``/clock`` (rosgraph_msgs/Clock) with the simulation time when ``publish_clock``;
+* publishes ``camera/image_raw`` (sensor_msgs/Image, rgb8) at ``camera.rate_hz`` (simulated time);
+* publishes ``objects/<name>/pose`` (geometry_msgs/PoseStamped, frame ``world_frame``) for every
+  object, at ``objects_rate_hz``;
+* subscribes ``joint_command`` (sensor_msgs/JointState): ``name`` = exactly the robot's joints
+  (any order), ``position`` = where the joints should be now (inside the limits), ``velocity`` =
+  feed-forward velocities (optional, empty = 0), ``effort`` ignored. Each physics step tracks the
+  latest command within the velocity / acceleration limits. A streamer publishes one per tick.
+  Invalid commands (wrong names / count, NaN, outside the limits, or while kinesthetic) are
+  dropped with a throttled warning;
+* subscribes ``guide_target`` (geometry_msgs/PointStamped, frame ``world_frame`` or empty): pull
+  the end effector towards the point with a spring (``guide_stiffness``, ``guide_max_force``)
+  until a point with a NaN coordinate clears it — a hand guiding the arm in kinesthetic mode;
+* services ``spawn_object`` (deepprompt_msgs/SpawnObject, replaces an object of the same name),
+  ``set_kinesthetic`` (std_srvs/SetBool: gravity-compensated, torque-free arm; switching off
+  holds the current configuration and clears the guide), ``reset`` (std_srvs/Trigger: back to
+  the initial configuration, guide cleared).
+
+Time: every message is stamped with the simulation time, ``t_start + sim_time`` where
+``t_start`` is the wall-clock time when the simulation started; with ``real_time_factor`` 1 this
+follows the wall clock, otherwise use ``use_sim_time`` with ``/clock`` in the consumers.
+
+All PyBullet calls run on one simulation thread, paced with ``time.perf_counter`` (see
+:meth:`Simulation.step <deepprompt_ros.core.sim.Simulation.step>`); ROS callbacks hand it work.
+"""
+from __future__ import annotations
+
+import concurrent.futures
+import math
+import queue
+import sys
+import threading
+import time
+from typing import Any, Callable, NamedTuple
+
+import numpy as np
+import rclpy
+from deepprompt_msgs.msg import ResultCode
+from deepprompt_msgs.srv import SpawnObject
+from geometry_msgs.msg import PointStamped, PoseStamped
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import Image, JointState
+from std_srvs.srv import SetBool, Trigger
+
+from deepprompt_ros.core.sim import SHAPES, CameraPose, Simulation
+from deepprompt_ros.ros import conversions as conv
+
+__all__ = ["SimBridge", "PARAMETERS", "main"]
+
+
+class ParamSpec(NamedTuple):
+    """One parameter: name, kind ('str' 'float' 'int' 'bool' 'float[]' 'str[]'), default,
+    description, optional inclusive range and allowed values."""
+
+    name: str
+    kind: str
+    default: Any
+    description: str
+    lo: float | None = None
+    hi: float | None = None
+
+
+#: Every parameter of the node (the README table is generated from the same list).
+PARAMETERS = (
+    ParamSpec("robot", "str", "gen3_lite", "gen3_lite, wam, or a fixed-base arm of example-robot-data "
+              "(panda, ur5, ...)"),
+    ParamSpec("rate_hz", "float", 0.0, "physics steps and joint_states per simulated second; "
+              "0 = the robot's control rate (1000 for gen3_lite and wam)", 0.0, 5000.0),
+    ParamSpec("real_time_factor", "float", 1.0, "simulated seconds per wall-clock second; "
+              "0 = as fast as possible", 0.0, 100.0),
+    ParamSpec("command_topic", "str", "joint_command", "sensor_msgs/JointState position targets "
+              "with velocity feed-forward"),
+    ParamSpec("joint_states_topic", "str", "joint_states", "sensor_msgs/JointState output"),
+    ParamSpec("publish_clock", "bool", True, "publish the simulation time on /clock"),
+    ParamSpec("initial_positions", "float[]", [], "start configuration, one value per joint; "
+              "empty = the robot's home"),
+    ParamSpec("kinesthetic", "bool", False, "start in kinesthetic (gravity-compensated) mode"),
+    ParamSpec("guide_topic", "str", "guide_target", "geometry_msgs/PointStamped the end effector "
+              "is pulled to (NaN clears)"),
+    ParamSpec("guide_stiffness", "float", 200.0, "guide spring stiffness (N/m)", 1.0, 1e4),
+    ParamSpec("guide_max_force", "float", 30.0, "bound on the guide force (N)", 0.1, 1000.0),
+    ParamSpec("camera.enabled", "bool", True, "render and publish camera images"),
+    ParamSpec("camera.topic", "str", "camera/image_raw", "sensor_msgs/Image output (rgb8)"),
+    ParamSpec("camera.frame_id", "str", "camera", "header.frame_id of the images"),
+    ParamSpec("camera.rate_hz", "float", 5.0, "images per simulated second", 0.1, 60.0),
+    ParamSpec("camera.width", "int", 64, "image width (pixels)", 1, 1024),
+    ParamSpec("camera.height", "int", 64, "image height (pixels)", 1, 1024),
+    ParamSpec("camera.eye", "float[]", [], "camera position [x, y, z] (m); empty = a default view of "
+              "the arm"),
+    ParamSpec("camera.target", "float[]", [], "point the camera looks at [x, y, z] (m); with "
+              "camera.eye"),
+    ParamSpec("camera.fov_deg", "float", 50.0, "vertical field of view (degrees), with camera.eye",
+              1.0, 179.0),
+    ParamSpec("objects_topic_prefix", "str", "objects", "object poses go to <prefix>/<name>/pose"),
+    ParamSpec("objects_rate_hz", "float", 30.0, "object pose messages per simulated second",
+              0.1, 1000.0),
+    ParamSpec("world_frame", "str", "world", "frame of object poses and guide targets"),
+    ParamSpec("object_names", "str[]", [], "objects spawned at start, each described by "
+              "objects.<name>.{shape, size, position, orientation, mass, rgba}"),
+)
+
+#: Per-object parameters objects.<name>.<field> (kind, default, description).
+OBJECT_FIELDS = (
+    ParamSpec("shape", "str", "box", "one of " + ", ".join(SHAPES)),
+    ParamSpec("size", "float[]", [0.05, 0.05, 0.05], "box [x, y, z] edges, sphere [radius], "
+              "cylinder [radius, length] (m)"),
+    ParamSpec("position", "float[]", [0.4, 0.0, 0.025], "centre [x, y, z] in the world (m)"),
+    ParamSpec("orientation", "float[]", [0.0, 0.0, 0.0, 1.0], "quaternion [x, y, z, w]"),
+    ParamSpec("mass", "float", 0.1, "kg; 0 = static", 0.0, 1000.0),
+    ParamSpec("rgba", "float[]", [], "colour [r, g, b, a] in [0, 1]; empty = default"),
+)
+
+
+class ConfigError(ValueError):
+    """A parameter has an invalid value; the node logs it and exits with code 2."""
+
+
+def _declare(node: Node, spec: ParamSpec, name: str | None = None):
+    """Declare one parameter (read-only, documented) and return its checked value."""
+    name = name or spec.name
+    desc = ParameterDescriptor(description=spec.description, read_only=True, dynamic_typing=True)
+    if spec.lo is not None and spec.kind == "float":
+        desc.floating_point_range = [FloatingPointRange(from_value=float(spec.lo), to_value=float(spec.hi))]
+    elif spec.lo is not None and spec.kind == "int":
+        desc.integer_range = [IntegerRange(from_value=int(spec.lo), to_value=int(spec.hi), step=1)]
+    default = None if isinstance(spec.default, list) and not spec.default else spec.default
+    try:
+        value = node.declare_parameter(name, default, desc).value
+    except Exception as exc:  # rclpy raises several types for bad overrides
+        raise ConfigError(f"parameter '{name}': {exc}") from None
+    expected = {"str": "a string", "float": "a number", "int": "an integer", "bool": "true or false",
+                "float[]": "a list of numbers", "str[]": "a list of strings"}[spec.kind]
+    bad = ConfigError(f"parameter '{name}' = {value!r} is not {expected} ({spec.description})")
+    if spec.kind.endswith("[]"):
+        value = [] if value is None else value
+        if not isinstance(value, (list, tuple)):
+            raise bad
+        if spec.kind == "float[]":
+            if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+                raise bad
+            value = [float(v) for v in value]
+            if not all(math.isfinite(v) for v in value):
+                raise ConfigError(f"parameter '{name}' = {value} must be finite numbers")
+        elif not all(isinstance(v, str) for v in value):
+            raise bad
+        return list(value)
+    if spec.kind == "float":
+        if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
+            raise bad
+        value = float(value)
+    elif spec.kind == "int":
+        if not isinstance(value, int) or isinstance(value, bool):
+            raise bad
+    elif spec.kind == "bool" and not isinstance(value, bool):
+        raise bad
+    elif spec.kind == "str" and not isinstance(value, str):
+        raise bad
+    if spec.lo is not None and not (spec.lo <= value <= spec.hi):
+        raise ConfigError(f"parameter '{name}' = {value} is outside [{spec.lo}, {spec.hi}] "
+                          f"({spec.description})")
+    return value
+
+
+class SimBridge(Node):
+    """The sim_bridge node; see the module docstring. Raises :class:`ConfigError` on bad parameters."""
+
+    def __init__(self, **node_kwargs):
+        super().__init__("sim_bridge", **node_kwargs)
+        p, errors = {}, []
+        for spec in PARAMETERS:  # declare all, then report every bad value at once
+            try:
+                p[spec.name] = _declare(self, spec)
+            except ConfigError as exc:
+                errors.append(str(exc))
+        if errors:
+            raise ConfigError("; ".join(errors))
+        self._p = p
+        if 0.0 < p["rate_hz"] < 10.0:
+            raise ConfigError(f"parameter 'rate_hz' = {p['rate_hz']} is too low; expected 0 (robot's "
+                              f"control rate) or 10..5000 Hz")
+        try:
+            from deepprompt_ros.core.robots import load_robot
+
+            spec = load_robot(p["robot"])
+        except ValueError as exc:
+            raise ConfigError(f"parameter 'robot': {exc}") from None
+        rate = p["rate_hz"] or spec.control_rate_hz
+        camera = None
+        if p["camera.eye"] or p["camera.target"]:
+            try:
+                camera = CameraPose(eye=tuple(p["camera.eye"]), target=tuple(p["camera.target"]),
+                                    fov_deg=p["camera.fov_deg"])
+            except (ValueError, TypeError) as exc:
+                raise ConfigError(f"parameters 'camera.eye' / 'camera.target': {exc} (both must be "
+                                  f"[x, y, z])") from None
+        try:
+            self.sim = Simulation(spec, timestep=1.0 / rate, real_time_factor=p["real_time_factor"],
+                                  camera=camera, initial_q=p["initial_positions"] or None)
+        except ValueError as exc:
+            raise ConfigError(f"parameter 'initial_positions': {exc}") from None
+        self.spec = spec
+        self._names = list(spec.joint_names)
+        self._calls: queue.SimpleQueue = queue.SimpleQueue()
+        self._command: tuple[int, np.ndarray, np.ndarray | None] | None = None
+        self._applied_command = 0
+        self._command_seq = 0
+        self._stop = threading.Event()
+        self._failed = False
+        self._object_pubs: dict[str, Any] = {}
+        try:
+            for name in p["object_names"]:
+                f = {s.name: _declare(self, s, f"objects.{name}.{s.name}") for s in OBJECT_FIELDS}
+                self._spawn(name, f["shape"], f["size"], f["position"], f["orientation"], f["mass"],
+                            f["rgba"] or None)
+        except ValueError as exc:
+            raise ConfigError(f"parameter objects.{name}: {exc}") from None
+        if p["kinesthetic"]:
+            self.sim.set_kinesthetic(True)
+
+        self._js_pub = self.create_publisher(JointState, p["joint_states_topic"], 10)
+        self._clock_pub = self.create_publisher(Clock, "/clock", 10) if p["publish_clock"] else None
+        self._image_pub = (self.create_publisher(Image, p["camera.topic"], 5)
+                           if p["camera.enabled"] else None)
+        self.create_subscription(JointState, p["command_topic"], self._on_command, 10)
+        self.create_subscription(PointStamped, p["guide_topic"], self._on_guide, 10)
+        self.create_service(SpawnObject, "spawn_object", self._on_spawn)
+        self.create_service(SetBool, "set_kinesthetic", self._on_set_kinesthetic)
+        self.create_service(Trigger, "reset", self._on_reset)
+        self._initial_q = self.sim.joint_state().position.copy()
+        self._thread = threading.Thread(target=self._run, name="sim", daemon=True)
+        self.get_logger().info(
+            f"robot {spec.name} ({spec.joints_text()}), {rate:g} Hz, real_time_factor "
+            f"{p['real_time_factor']:g}; publishing {self.resolve_topic_name(p['joint_states_topic'])}"
+            + (f", camera {p['camera.width']}x{p['camera.height']} at {p['camera.rate_hz']:g} Hz"
+               if p["camera.enabled"] else "") + f", objects {list(self.sim.objects)}")
+
+    # ------------------------------------------------------------------------------------------
+    # simulation thread
+    # ------------------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Start stepping the simulation."""
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop the simulation thread (blocks until it ended)."""
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=5.0)
+
+    @property
+    def failed(self) -> bool:
+        return self._failed
+
+    def _in_sim(self, fn: Callable[[], Any], timeout: float = 5.0) -> Any:
+        """Run ``fn`` on the simulation thread between two steps and return its result."""
+        fut: concurrent.futures.Future = concurrent.futures.Future()
+        self._calls.put((fn, fut))
+        return fut.result(timeout=timeout)
+
+    def _run(self) -> None:
+        p, sim = self._p, self.sim
+        dt_cam = 1.0 / p["camera.rate_hz"]
+        dt_obj = 1.0 / p["objects_rate_hz"]
+        next_cam = next_obj = 0.0
+        t0_ns = time.time_ns()
+        msg = JointState(name=self._names)
+        clock = Clock()
+        log = self.get_logger()
+        try:
+            while not self._stop.is_set():
+                while not self._calls.empty():
+                    fn, fut = self._calls.get_nowait()
+                    try:
+                        fut.set_result(fn())
+                    except Exception as exc:  # handed back to the waiting callback
+                        fut.set_exception(exc)
+                cmd = self._command
+                if cmd is not None and cmd[0] != self._applied_command:
+                    self._applied_command = cmd[0]
+                    if sim.kinesthetic:
+                        log.warn("joint command ignored: kinesthetic mode is on (set_kinesthetic "
+                                 "false to command positions)", throttle_duration_sec=2.0)
+                    else:
+                        sim.set_position_targets(cmd[1], cmd[2])
+                sim.step()
+                q, qd, effort = sim.joint_state()
+                stamp = conv.ns_to_stamp(t0_ns + round(sim.time * 1e9))
+                msg.header.stamp = stamp
+                msg.position, msg.velocity, msg.effort = q.tolist(), qd.tolist(), effort.tolist()
+                self._js_pub.publish(msg)
+                if self._clock_pub is not None:
+                    clock.clock = stamp
+                    self._clock_pub.publish(clock)
+                if self._object_pubs and sim.time >= next_obj:
+                    next_obj = sim.time + dt_obj
+                    for name, pub in self._object_pubs.items():
+                        pose = sim.object_pose(name)
+                        m = conv.pose_stamped(pose.position, pose.orientation_xyzw,
+                                              frame_id=p["world_frame"])
+                        m.header.stamp = stamp
+                        pub.publish(m)
+                if self._image_pub is not None and sim.time >= next_cam:
+                    next_cam = sim.time + dt_cam
+                    img = sim.camera_image(p["camera.width"], p["camera.height"])
+                    m = conv.array_to_image(img, frame_id=p["camera.frame_id"])
+                    m.header.stamp = stamp
+                    self._image_pub.publish(m)
+        except Exception as exc:  # a broken simulation ends the node with an error
+            if self.context.ok():
+                self._failed = True
+                log.fatal(f"simulation stopped: {type(exc).__name__}: {exc}")
+                rclpy.try_shutdown(context=self.context)
+
+    # ------------------------------------------------------------------------------------------
+    # callbacks (executor thread)
+    # ------------------------------------------------------------------------------------------
+    def _on_command(self, msg: JointState) -> None:
+        try:
+            js = conv.joint_state_to_arrays(msg)
+            if len(js.names) != len(self._names) or set(js.names) != set(self._names):
+                raise ValueError(f"joint command names {list(js.names)}; expected exactly the "
+                                 f"{len(self._names)} joints {self.spec.joints_text()} (any order)")
+            q = conv.reorder_joints(js.names, js.position, self._names)
+            q = self.spec.validate_positions(q, tolerance=1e-6, label="joint command position")
+            qd = None
+            if js.velocity is not None:
+                qd = conv.reorder_joints(js.names, js.velocity, self._names)
+                qd = self.spec.validate_velocities(qd, tolerance=1e-6, label="joint command velocity")
+        except ValueError as exc:
+            self.get_logger().warn(f"joint command rejected: {exc}", throttle_duration_sec=1.0)
+            return
+        self._command_seq += 1
+        self._command = (self._command_seq, q, qd)
+
+    def _on_guide(self, msg: PointStamped) -> None:
+        frame = msg.header.frame_id
+        if frame not in ("", self._p["world_frame"]):
+            self.get_logger().warn(f"guide target rejected: frame '{frame}'; expected "
+                                   f"'{self._p['world_frame']}' or empty", throttle_duration_sec=1.0)
+            return
+        target = conv.point_to_array(msg.point)
+        if np.any(np.isnan(target)):
+            self._calls.put((self.sim.release, concurrent.futures.Future()))
+            return
+        if not np.all(np.isfinite(target)):
+            self.get_logger().warn(f"guide target rejected: {target.tolist()} is not finite",
+                                   throttle_duration_sec=1.0)
+            return
+        k, fmax = self._p["guide_stiffness"], self._p["guide_max_force"]
+        self._calls.put((lambda: self.sim.guide_towards(target, stiffness=k, max_force=fmax),
+                         concurrent.futures.Future()))
+
+    def _spawn(self, name: str, shape: str, size, position, orientation, mass: float, rgba) -> None:
+        """Spawn (or replace) an object; create its pose publisher. Raises ValueError."""
+        if not isinstance(name, str) or not name or not (name[0].isalpha() and
+                                                         name.replace("_", "a").isalnum()):
+            raise ValueError(f"object name {name!r} is not valid; expected letters, digits and '_', "
+                             f"starting with a letter (it becomes part of a topic name)")
+        q = np.asarray(orientation, dtype=np.float64)
+        if q.shape == (4,) and np.all(q == 0.0):
+            q = np.array([0.0, 0.0, 0.0, 1.0])
+        kw = {} if rgba is None else {"rgba": rgba}
+
+        def do():
+            if name in self.sim.objects:
+                self.sim.remove_object(name)
+            self.sim.spawn_object(name, shape=shape, size=size, position=position,
+                                  orientation_xyzw=q, mass=float(mass), **kw)
+
+        if self._thread_started():
+            self._in_sim(do)
+        else:
+            do()
+        if name not in self._object_pubs:
+            topic = f"{self._p['objects_topic_prefix']}/{name}/pose"
+            self._object_pubs = {**self._object_pubs, name: self.create_publisher(PoseStamped, topic, 10)}
+
+    def _thread_started(self) -> bool:
+        return hasattr(self, "_thread") and self._thread.is_alive()
+
+    def _on_spawn(self, req: SpawnObject.Request, res: SpawnObject.Response) -> SpawnObject.Response:
+        try:
+            pos, quat = conv.pose_to_arrays(req.pose)
+            self._spawn(req.name, req.shape, list(req.size), pos, quat, req.mass,
+                        list(req.rgba) if len(req.rgba) else None)
+        except (ValueError, TypeError) as exc:
+            res.success, res.code.value, res.message = False, ResultCode.INVALID_REQUEST, str(exc)
+            return res
+        except Exception as exc:
+            res.success, res.code.value = False, ResultCode.INTERNAL_ERROR
+            res.message = f"spawning '{req.name}' failed: {type(exc).__name__}: {exc}"
+            return res
+        res.success, res.code.value = True, ResultCode.SUCCESS
+        res.message = (f"spawned {req.shape} '{req.name}'; pose on "
+                       f"{self.resolve_topic_name(self._p['objects_topic_prefix'] + '/' + req.name + '/pose')}")
+        return res
+
+    def _on_set_kinesthetic(self, req: SetBool.Request, res: SetBool.Response) -> SetBool.Response:
+        def do():
+            if not req.data:
+                self.sim.release()
+            self.sim.set_kinesthetic(req.data)
+
+        try:
+            self._in_sim(do)
+        except Exception as exc:
+            res.success, res.message = False, f"{type(exc).__name__}: {exc}"
+            return res
+        res.success = True
+        res.message = ("kinesthetic mode on: the arm is gravity compensated and follows guide_target"
+                       if req.data else "kinesthetic mode off: holding the current configuration")
+        return res
+
+    def _on_reset(self, req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        try:
+            self._in_sim(lambda: self.sim.reset(self._initial_q))
+        except Exception as exc:
+            res.success, res.message = False, f"{type(exc).__name__}: {exc}"
+            return res
+        res.success, res.message = True, "arm reset to the initial configuration, guide cleared"
+        return res
+
+
+def main(args=None) -> int:
+    """Entry point of ``ros2 run deepprompt_ros sim_bridge``; returns the exit code."""
+    # The simulation thread must get the interpreter lock soon after its sleep ends: bound how
+    # long the executor thread may keep it (Python's default is 5 ms, five physics steps).
+    sys.setswitchinterval(5e-4)
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        node = SimBridge()
+        node.start()
+        rclpy.spin(node)
+    except ConfigError as exc:
+        rclpy.logging.get_logger("sim_bridge").fatal(f"invalid configuration: {exc}")
+        code = 2
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.stop()
+            if node.failed:
+                code = 1
+            node.sim.close()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())
