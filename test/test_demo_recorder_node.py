@@ -271,7 +271,7 @@ def test_record_guided_kinesthetic_demo(nodes, client, work):
     dt = np.diff(demo.t)
     assert demo.t[0] == 0.0 and np.all(dt > 0)
     assert np.median(dt) == pytest.approx(1e-3, abs=1e-6)  # the sim's 1 kHz stamps
-    assert 1.0 < demo.t[-1] < 4.0
+    assert 0.5 < demo.t[-1] < 4.0  # 1.5 s of wall time; a busy machine runs the sim slower
     moved = np.linalg.norm(kin.forward_kinematics(demo.q[-1]).position - kin.forward_kinematics(demo.q[0]).position)
     assert moved > 0.05, f"end effector moved only {moved:.3f} m"
     np.testing.assert_allclose(demo.contexts["object"], [CUBE], atol=5e-3)

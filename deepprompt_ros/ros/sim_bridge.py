@@ -229,7 +229,9 @@ class SimBridge(Node):
         if p["kinesthetic"]:
             self.sim.set_kinesthetic(True)
 
-        self._js_pub = self.create_publisher(JointState, p["joint_states_topic"], 10)
+        # A deep history: a reliable subscriber that stalls for up to 0.5 s (a busy recorder)
+        # still gets every message.
+        self._js_pub = self.create_publisher(JointState, p["joint_states_topic"], 500)
         self._clock_pub = self.create_publisher(Clock, "/clock", 10) if p["publish_clock"] else None
         self._image_pub = (self.create_publisher(Image, p["camera.topic"], 5)
                            if p["camera.enabled"] else None)
