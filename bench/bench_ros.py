@@ -1,0 +1,378 @@
+"""Benchmark of primitive_server over real DDS, every party in its own process.
+
+    python bench/bench_ros.py            # full: 40 s stream, >= 500 Condition calls, 30 random executions
+    python bench/bench_ros.py --quick    # a few seconds (smoke run)
+
+Processes: sim_bridge (PyBullet Gen3 lite, joint_states at 1 kHz), primitive_server, a stream
+subscriber, a Condition client, and this orchestrator (action client).
+
+Metrics (last line: space-separated name=value pairs):
+
+* ``srv_p50_ms``, ``srv_p99_ms`` -- Condition round trip (request with 5 via-points and the
+  'object' context, preview 100 points) measured by the client process, while the stream runs;
+* ``stream_hz`` -- joint_command messages received per second by the subscriber during one long
+  Execute goal;
+* ``stream_period_p99_err_ms`` -- p99 over inter-arrival intervals of |interval - dt| (dt = 1 ms);
+* ``stream_missed`` -- intervals longer than 1.5 dt (each is a command that arrived at least half a
+  period late or not at all); ``stream_lost`` -- commands never received (gaps in the commands'
+  header.stamp, which is the nominal time of the tick: k dt);
+* ``limit_violations`` -- over random executions in the sim (random via-points, durations,
+  preemptions, cancels, phase-rate changes): commanded samples violating a limit
+  (core.streaming.check_limits on the joint_command stream: positions, velocities, and the
+  finite-difference accelerations / jerks of consecutive commands; segments split at lost
+  messages) plus measured joint_states samples outside the URDF position limits by > 1e-4 rad.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+SERVER = "/primitive_server"
+
+
+# ------------------------------------------------------------------------------------------------
+# model: the shipped reach primitive, or a tiny one trained here
+# ------------------------------------------------------------------------------------------------
+def tiny_reach_model(path: pathlib.Path, steps: int = 300) -> pathlib.Path:
+    """A small 6-joint Gen3 lite primitive with context 'object' (3), trained in seconds."""
+    from deepprompt_ros.core.dataset import Demonstration, DemoDataset
+    from deepprompt_ros.core.robots import load_robot
+    from deepprompt_ros.core.train import TrainConfig, train
+
+    spec = load_robot("gen3_lite")
+    rng = np.random.default_rng(0)
+    x = np.linspace(0, 1, 50)
+    s = 10 * x**3 - 15 * x**4 + 6 * x**5  # minimum-jerk profile
+    a = rng.uniform(-1, 1, (6, 3))
+    demos = []
+    for i in range(40):
+        c = rng.uniform(-0.5, 0.5, 3)
+        q = spec.home + s[:, None] * (a @ c)[None, :] * 0.6
+        demos.append(Demonstration(f"d{i}", x * 6.0, q, spec.joint_names, {"object": c[None]}))
+    train(DemoDataset(tuple(demos), source="bench tiny reach"),
+          TrainConfig(steps=steps, latent_dim=8, hidden=32, val_every=steps, n_points=50, max_via_points=5,
+                      threads=1), out_path=path, log=lambda m: None)
+    return path
+
+
+def primitives_file(tmp: pathlib.Path) -> pathlib.Path:
+    from deepprompt_ros import paths
+
+    try:
+        model = paths.find_data_file("models", "gen3_lite_reach.safetensors")
+    except FileNotFoundError:
+        model = tiny_reach_model(tmp / "tiny_reach.safetensors")
+    f = tmp / "primitives.yaml"
+    f.write_text(f"primitives:\n  - name: reach\n    model: {model}\n")
+    return f
+
+
+# ------------------------------------------------------------------------------------------------
+# roles running in their own processes
+# ------------------------------------------------------------------------------------------------
+def _role_node(name):
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    rclpy.init()
+    node = rclpy.create_node(name)
+    ex = SingleThreadedExecutor()
+    ex.add_node(node)
+    return rclpy, node, ex
+
+
+def role_subscriber(out: str, seconds: float, start_file: str, states: bool) -> None:
+    """Record joint_command (arrival time, stamp, q, qd) and, if ``states``, joint_states (q)."""
+    from rclpy.qos import QoSProfile
+    from sensor_msgs.msg import JointState
+
+    rclpy, node, ex = _role_node("bench_stream_subscriber")
+    cmd, js = [], []
+    qos = QoSProfile(depth=1000)
+    perf = time.perf_counter
+    node.create_subscription(JointState, "joint_command", lambda m: cmd.append(
+        (perf(), m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec, tuple(m.position), tuple(m.velocity))), qos)
+    if states:
+        node.create_subscription(JointState, "joint_states", lambda m: js.append(tuple(m.position)), qos)
+    pathlib.Path(start_file).write_text("ready")
+    end = time.monotonic() + seconds
+    stop = pathlib.Path(start_file + ".stop")
+    while time.monotonic() < end and not stop.exists():
+        ex.spin_once(timeout_sec=0.05)
+
+    def rows(values, width=6):
+        return np.array(values, dtype=np.float64).reshape(len(values), width)
+
+    np.savez(out, t=np.array([c[0] for c in cmd]), stamp=np.array([c[1] for c in cmd], dtype=np.int64),
+             q=rows([c[2] for c in cmd]), qd=rows([c[3] for c in cmd]), js=rows(js))
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def _condition_request(rng, home):
+    from deepprompt_msgs.msg import Context
+    from deepprompt_msgs.srv import Condition
+
+    from deepprompt_ros.ros import conversions as conv
+
+    x = np.sort(rng.uniform(0, 1, 5))
+    y = home + rng.normal(0, 0.05, (5, 6))
+    return Condition.Request(primitive="reach", via_points=conv.via_points_to_msgs(x, y),
+                             contexts=[Context(modality="object", values=rng.uniform(-0.3, 0.3, 3).tolist())],
+                             preview_points=100)
+
+
+def role_client(out: str, seconds: float, min_calls: int) -> None:
+    """Call Condition back to back; record round trips."""
+    from deepprompt_msgs.srv import Condition
+
+    from deepprompt_ros.core.robots import load_robot
+
+    rclpy, node, ex = _role_node("bench_condition_client")
+    cli = node.create_client(Condition, f"{SERVER}/condition")
+    cli.wait_for_service(timeout_sec=30)
+    home = load_robot("gen3_lite").home
+    rng = np.random.default_rng(1)
+    rtt, fails = [], 0
+    end = time.monotonic() + seconds
+    while time.monotonic() < end or len(rtt) < min_calls:
+        req = _condition_request(rng, home)
+        t0 = time.perf_counter()
+        fut = cli.call_async(req)
+        while not fut.done():
+            ex.spin_once(timeout_sec=0.01)
+        rtt.append(time.perf_counter() - t0)
+        fails += not fut.result().success
+    np.savez(out, rtt=np.array(rtt), fails=fails)
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+# ------------------------------------------------------------------------------------------------
+# orchestrator
+# ------------------------------------------------------------------------------------------------
+class Orchestrator:
+    def __init__(self, env):
+        from rclpy.action import ActionClient
+
+        from deepprompt_msgs.action import Execute
+        from deepprompt_ros.ros.testing import RosTestClient
+
+        self.c = RosTestClient(env, "bench_orchestrator")
+        self.Execute = Execute
+        self.ac = ActionClient(self.c.node, Execute, f"{SERVER}/execute")
+        if not self.c.wait_for(self.ac.server_is_ready, 60):
+            raise RuntimeError("execute action server not available")
+
+    def condition(self, req):
+        from deepprompt_msgs.srv import Condition
+
+        return self.c.call(Condition, f"{SERVER}/condition", req)
+
+    def set_rate(self, rate):
+        from deepprompt_msgs.srv import SetPhaseRate
+
+        return self.c.call(SetPhaseRate, f"{SERVER}/set_phase_rate", SetPhaseRate.Request(phase_rate=rate))
+
+    def send(self, handle, duration):
+        fut = self.ac.send_goal_async(self.Execute.Goal(handle=handle, duration=duration))
+        self.c.wait_for(fut.done, 10)
+        gh = fut.result()
+        return gh, gh.get_result_async()
+
+    def wait(self, res_fut, timeout):
+        self.c.wait_for(res_fut.done, timeout)
+        return res_fut.result().result if res_fut.done() else None
+
+    def close(self):
+        self.ac.destroy()
+        self.c.close()
+
+
+def stream_metrics(data, dt):
+    t, stamp = data["t"], data["stamp"]
+    if t.size < 3:
+        return dict(stream_hz=0.0, stream_period_p99_err_ms=float("nan"), stream_missed=-1, stream_lost=-1)
+    iv = np.diff(t)
+    steps = np.round(np.diff(stamp) / (dt * 1e9)).astype(int)
+    return dict(stream_hz=float((t.size - 1) / (t[-1] - t[0])),
+                stream_period_p99_err_ms=float(np.percentile(np.abs(iv - dt), 99) * 1e3),
+                stream_missed=int((iv > 1.5 * dt).sum()),
+                stream_lost=int(np.maximum(steps - 1, 0).sum()),
+                stream_interval_max_ms=float(iv.max() * 1e3))
+
+
+def limit_check(data, dt, limits):
+    """Violations in the commanded stream (segments between lost messages) and measured states."""
+    from deepprompt_ros.core.streaming import check_limits
+
+    q, qd, stamp = data["q"], data["qd"], data["stamp"]
+    viol, worst = 0, {}
+    if q.shape[0] > 2:
+        steps = np.round(np.diff(stamp) / (dt * 1e9)).astype(int)
+        cuts = np.flatnonzero(steps != 1) + 1
+        for seg in np.split(np.arange(q.shape[0]), cuts):
+            if seg.size < 3:
+                continue
+            qs, vs = q[seg], qd[seg]
+            acc = np.vstack([np.zeros((1, vs.shape[1])), np.diff(vs, axis=0) / dt])
+            rep = check_limits(qs, vs, acc, dt, limits)
+            # per-sample counts (the report gives maxima): positions, velocities, FD acc / jerk
+            bad = ((qs < limits.lower - 1e-9) | (qs > limits.upper + 1e-9)).any(1)
+            bad |= (np.abs(vs) > limits.max_velocity * (1 + 1e-6)).any(1)
+            bad[1:] |= (np.abs(acc[1:]) > limits.max_acceleration * (1 + 1e-6)).any(1)
+            bad[2:] |= (np.abs(np.diff(acc[1:], axis=0)) / dt > limits.max_jerk * (1 + 1e-6)).any(1)
+            viol += int(bad.sum())
+            for k in ("velocity_ratio", "fd_acceleration_ratio", "jerk_ratio", "position_excess"):
+                worst[k] = max(worst.get(k, 0.0), float(getattr(rep, k)))
+    js = data["js"]
+    excess = np.maximum(np.maximum(limits.lower - js, js - limits.upper), 0.0).max(1) if js.size else np.zeros(0)
+    js_viol = int((excess > 1e-4).sum())
+    worst["measured_position_excess"] = float(excess.max()) if excess.size else 0.0
+    return viol, js_viol, worst
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="a few seconds instead of ~2 minutes")
+    ap.add_argument("--loop-mode", default="thread", choices=("thread", "timer"))
+    ap.add_argument("--param", action="append", default=[], help="extra primitive_server parameter name:=value")
+    ap.add_argument("--role", choices=("subscriber", "client"), help=argparse.SUPPRESS)
+    ap.add_argument("--out", help=argparse.SUPPRESS)
+    ap.add_argument("--seconds", type=float, default=0.0, help=argparse.SUPPRESS)
+    ap.add_argument("--calls", type=int, default=0, help=argparse.SUPPRESS)
+    ap.add_argument("--start-file", help=argparse.SUPPRESS)
+    ap.add_argument("--states", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.role == "subscriber":
+        role_subscriber(args.out, args.seconds, args.start_file, args.states)
+        return 0
+    if args.role == "client":
+        role_client(args.out, args.seconds, args.calls)
+        return 0
+
+    from deepprompt_ros.core.robots import load_robot
+    from deepprompt_ros.core.server_logic import ServerConfig, robot_limits
+    from deepprompt_ros.ros.testing import NodeProcess, isolated_ros_env
+
+    stream_s, calls, n_exec = (4.0, 50, 3) if args.quick else (40.0, 500, 30)
+    tmp = pathlib.Path(tempfile.mkdtemp(prefix="bench_ros_"))
+    env = isolated_ros_env(tmp / "log")
+    spec = load_robot("gen3_lite")
+    limits = robot_limits(spec, ServerConfig())
+    dt = 1.0 / spec.control_rate_hz
+    procs = []
+    t_start = time.monotonic()
+    try:
+        prim_file = primitives_file(tmp)
+        procs.append(NodeProcess.start_module("deepprompt_ros.ros.sim_bridge", env, params={
+            "camera.enabled": False, "publish_clock": False}))
+        ros_args = ["-p", f"primitives_file:={prim_file}", "-p", f"loop_mode:={args.loop_mode}"]
+        for p in args.param:
+            ros_args += ["-p", p]
+        server = NodeProcess.start_module("deepprompt_ros.ros.primitive_server", env, ros_args=ros_args)
+        procs.append(server)
+        orch = Orchestrator(env)
+
+        def start_role(role, out, seconds, extra=()):
+            cmd = [sys.executable, str(pathlib.Path(__file__).resolve()), "--role", role, "--out", str(out),
+                   "--seconds", str(seconds), *extra]
+            p = NodeProcess(cmd, env, tmp / f"{role}.log")
+            procs.append(p)
+            return p
+
+        # ---- phase 1: one long execution; subscriber + Condition client in their own processes
+        ready = tmp / "sub_ready"
+        sub = start_role("subscriber", tmp / "stream.npz", stream_s + 6.0, ["--start-file", str(ready)])
+        while not ready.exists():
+            time.sleep(0.05)
+        rng = np.random.default_rng(0)
+        r = orch.condition(_condition_request(rng, spec.home))
+        assert r.success, r.message
+        time.sleep(1.0)
+        gh, res_fut = orch.send(r.handle, stream_s + 4.0)
+        time.sleep(1.0)
+        cli = start_role("client", tmp / "client.npz", stream_s, ["--calls", str(calls)])
+        cli.wait(stream_s * 10 + 120)
+        res = orch.wait(res_fut, stream_s + 30)
+        sub.wait(30)
+        stream = dict(np.load(tmp / "stream.npz"))
+        client = dict(np.load(tmp / "client.npz"))
+        # only the samples of the motion (the subscriber also saw the idle time around it)
+        metrics = stream_metrics(stream, dt)
+        rtt = client["rtt"] * 1e3
+        metrics.update(srv_p50_ms=float(np.percentile(rtt, 50)), srv_p99_ms=float(np.percentile(rtt, 99)),
+                       srv_calls=int(rtt.size), srv_failures=int(client["fails"]),
+                       long_goal_code=int(res.code.value) if res is not None else -1)
+
+        # ---- phase 2: random executions; the subscriber records commands and joint states
+        ready2 = tmp / "sub2_ready"
+        per_exec = 3.0
+        sub2 = start_role("subscriber", tmp / "limits.npz", n_exec * (per_exec + 2.5) + 20,
+                          ["--start-file", str(ready2), "--states"])
+        while not ready2.exists():
+            time.sleep(0.05)
+        time.sleep(1.0)
+        codes = {}
+        for i in range(n_exec):
+            r = orch.condition(_condition_request(rng, spec.home))
+            if not r.success:
+                codes["condition_failed"] = codes.get("condition_failed", 0) + 1
+                continue
+            gh, fut = orch.send(r.handle, float(rng.uniform(2.0, 4.0)))
+            action = rng.choice(["finish", "preempt", "cancel", "rate"])
+            orch.c.spin_for(float(rng.uniform(0.3, 1.5)))
+            if action == "cancel":
+                gh.cancel_goal_async()
+            elif action == "rate":
+                orch.set_rate(float(rng.uniform(-0.2, 0.6)))
+            elif action == "preempt":
+                r2 = orch.condition(_condition_request(rng, spec.home))
+                if r2.success:
+                    gh, fut = orch.send(r2.handle, float(rng.uniform(2.0, 4.0)))
+            if action == "rate":
+                orch.c.spin_for(1.0)
+                gh.cancel_goal_async()
+            res = orch.wait(fut, 30.0)
+            name = str(res.code.value) if res is not None else "timeout"
+            codes[name] = codes.get(name, 0) + 1
+        (tmp / "sub2_ready.stop").write_text("stop")
+        sub2.wait(60)
+        lim_path = tmp / "limits.npz"
+        if lim_path.exists():
+            viol, js_viol, worst = limit_check(dict(np.load(lim_path)), dt, limits)
+        else:
+            viol, js_viol, worst = -1, -1, {}
+        metrics.update(limit_violations=viol + js_viol, limit_violations_measured=js_viol,
+                       executions=n_exec, **{f"worst_{k}": v for k, v in worst.items()})
+        orch.close()
+        metrics["exec_codes"] = json.dumps(codes, sort_keys=True).replace(" ", "")
+    finally:
+        for p in procs:
+            p.stop()
+    metrics["wall_s"] = time.monotonic() - t_start
+
+    print(f"primitive_server benchmark ({'quick' if args.quick else 'full'}, loop_mode={args.loop_mode}, "
+          f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs)")
+    print(f"{'metric':34s} value")
+    for k, v in metrics.items():
+        print(f"{k:34s} {v:.4g}" if isinstance(v, float) else f"{k:34s} {v}")
+    keys = ["srv_p50_ms", "srv_p99_ms", "stream_hz", "stream_period_p99_err_ms", "stream_missed", "stream_lost",
+            "limit_violations"]
+    print(" ".join(f"{k}={metrics[k]:.4g}" if isinstance(metrics[k], float) else f"{k}={metrics[k]}" for k in keys))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,330 @@
+"""primitive_server: serves trained DeepProMPs and streams their execution at control rate.
+
+Run: ``ros2 run deepprompt_ros primitive_server [--ros-args --params-file config/primitive_server.yaml]``
+(or ``python -m deepprompt_ros.ros.primitive_server``). Parameters: the fields of
+:class:`deepprompt_ros.core.server_logic.ServerConfig` (``parameters_markdown()`` renders them).
+
+Interfaces (``~`` = the node's name, ``/primitive_server`` by default):
+
+* services ``~/condition`` (Condition), ``~/blend`` (Blend), ``~/sample`` (Sample),
+  ``~/list_primitives`` (ListPrimitives), ``~/set_phase_rate`` (SetPhaseRate);
+* action ``~/execute`` (Execute): feedback phase / cycle / phase rate / tracking error, result
+  code + message, cancelable, a new goal preempts the running one;
+* subscribes ``joint_states`` (sensor_msgs/JointState, the measured robot state);
+* publishes ``<controller>/joint_trajectory`` (trajectory_msgs/JointTrajectory: a few future
+  samples of the command stream with positions, velocities, accelerations, then a braking tail to
+  rest) and ``joint_command`` (sensor_msgs/JointState, one per control tick: names = the robot's
+  joints, position + velocity; what sim_bridge consumes).
+
+Start-up: invalid parameters or no servable primitive -> a log line per problem and exit code 2.
+Primitives that cannot be served (missing file, joints that are not the robot's, corrupt model)
+are refused one by one with a log line; the server starts with the others.
+Every callback is wrapped: a bad request gets success=false, a ResultCode and a message; an
+unexpected exception gets INTERNAL_ERROR (traceback in the log), and the node keeps serving.
+"""
+from __future__ import annotations
+
+import functools
+import math
+import pathlib
+import sys
+import time
+import traceback
+
+import numpy as np
+import rclpy
+from deepprompt_msgs.action import Execute
+from deepprompt_msgs.srv import Blend, Condition, ListPrimitives, Sample, SetPhaseRate
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from trajectory_msgs.msg import JointTrajectory
+
+from deepprompt_ros import paths
+from deepprompt_ros.core import server_logic as sl
+from deepprompt_ros.core.robots import load_robot
+from deepprompt_ros.ros import conversions as conv
+from deepprompt_ros.ros.stream_loop import (BrakeTail, ExecutionController, ExecutionGoal, StreamLoop,
+                                            set_switch_interval, trajectory_points)
+
+__all__ = ["PrimitiveServer", "main"]
+
+
+class PrimitiveServer(Node):
+    """The node: wiring only (logic in core.server_logic and ros.stream_loop)."""
+
+    def __init__(self, **kwargs):
+        super().__init__("primitive_server", **kwargs)
+        log = self.get_logger()
+        self.cfg = cfg = self._read_parameters()
+        set_switch_interval(cfg.gil_switch_interval)
+        try:
+            self.robot = load_robot(cfg.robot)
+        except (ValueError, FileNotFoundError, OSError) as exc:
+            raise sl.ConfigError(f"robot '{cfg.robot}' cannot be loaded: {exc}") from None
+        prims = self._load_primitives(cfg)
+        self.limits = sl.robot_limits(self.robot, cfg)
+        self.core = sl.PrimitiveServerCore(prims, cfg, self.limits)
+        self.names = list(self.robot.joint_names)
+        rate = cfg.control_rate_hz or self.robot.control_rate_hz
+        ctl = ExecutionController(self.limits, 1.0 / rate, cfg)
+        self._tail = BrakeTail(self.limits)
+
+        self._cmd_msg = JointState(name=self.names)
+        self._cmd_pub = self.create_publisher(JointState, cfg.command_topic, 10) if cfg.command_topic else None
+        topic = f"{cfg.controller}/joint_trajectory"
+        self._traj_pub = self.create_publisher(JointTrajectory, topic, 10) if cfg.controller else None
+        # joint_states are taken by the control thread (StreamLoop.poll) from a subscription of a
+        # helper node that no executor spins: no per-message executor dispatch at 1 kHz
+        self._state_node = rclpy.create_node(f"{self.get_name()}_state_reader", namespace=self.get_namespace(),
+                                             context=self.context)
+        self._state_sub = self._state_node.create_subscription(
+            JointState, cfg.joint_states_topic, lambda msg: None,
+            QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+        self._state_index: tuple | None = None
+        self._perf_to_ros = self.get_clock().now().nanoseconds - int(time.perf_counter() * 1e9)
+        self.loop = StreamLoop(ctl, cfg, self._publish_command if self._cmd_pub else None,
+                               self._publish_trajectory if self._traj_pub else None,
+                               on_error=lambda m: log.error(m, throttle_duration_sec=1.0),
+                               poll_measured=self._poll_joint_state)
+        services = MutuallyExclusiveCallbackGroup()
+        for srv, name, fn in ((Condition, "condition", self._condition), (Blend, "blend", self._blend),
+                              (Sample, "sample", self._sample), (ListPrimitives, "list_primitives", self._list),
+                              (SetPhaseRate, "set_phase_rate", self._set_rate)):
+            self.create_service(srv, f"~/{name}", self._guard(name, fn), callback_group=services)
+        self._action = ActionServer(self, Execute, "~/execute", self._execute, callback_group=ReentrantCallbackGroup(),
+                                    goal_callback=lambda goal: GoalResponse.ACCEPT,
+                                    cancel_callback=lambda goal: CancelResponse.ACCEPT)
+        if cfg.loop_mode == "timer":
+            self.create_timer(1.0 / rate, self.loop.timer_tick, callback_group=MutuallyExclusiveCallbackGroup())
+        self.loop.start(threaded=cfg.loop_mode == "thread")
+        if self.loop.priority_error:
+            log.warn(self.loop.priority_error)
+        log.info(f"serving {len(prims)} primitive(s) [{', '.join(sorted(prims))}] for robot '{self.robot.name}' "
+                 f"({len(self.names)} joints), control loop {rate:g} Hz ({cfg.loop_mode}), commands on "
+                 f"{cfg.command_topic or '(off)'} and {topic if cfg.controller else '(no JointTrajectory)'}")
+
+    # ------------------------------------------------------------------ start-up
+    def _read_parameters(self) -> sl.ServerConfig:
+        values, errors = {}, []
+        for p in sl.PARAMETERS:
+            desc = ParameterDescriptor(description=p.description, read_only=True, dynamic_typing=True)
+            if p.min is not None and p.type == "double":
+                desc.floating_point_range = [FloatingPointRange(from_value=float(p.min), to_value=float(p.max))]
+            elif p.min is not None and p.type == "int":
+                desc.integer_range = [IntegerRange(from_value=int(p.min), to_value=int(p.max), step=1)]
+            if p.choices:
+                desc.additional_constraints = "one of: " + ", ".join(p.choices)
+            try:
+                values[p.name] = self.declare_parameter(p.name, p.default, desc).value
+            except Exception:  # rclpy refuses an out-of-range override: read it without the range
+                plain = ParameterDescriptor(description=p.description, read_only=True, dynamic_typing=True)
+                try:  # ServerConfig then explains every invalid value at once
+                    values[p.name] = self.declare_parameter(p.name, p.default, plain).value
+                except Exception as exc:
+                    errors.append(f"{p.name}: {exc}")
+        if errors:
+            raise sl.ConfigError("invalid parameters:\n  " + "\n  ".join(errors))
+        return sl.ServerConfig.from_mapping(values)
+
+    def _load_primitives(self, cfg: sl.ServerConfig) -> dict:
+        log = self.get_logger()
+        try:
+            file = cfg.primitives_file or str(paths.find_data_file("config", "primitives.yaml"))
+        except FileNotFoundError as exc:
+            raise sl.ConfigError(f"no primitives file: {exc}; set the parameter primitives_file") from None
+        entries, errors = sl.read_primitives_file(file)
+        if cfg.models_dir:
+            def resolve(name):
+                path = pathlib.Path(name)
+                path = path if path.is_absolute() else pathlib.Path(cfg.models_dir) / path
+                if not path.is_file():
+                    raise FileNotFoundError(f"model file '{path}' does not exist (models_dir '{cfg.models_dir}')")
+                return path
+        else:
+            resolve = functools.partial(paths.find_data_file, "models")
+        prims, load_errors = sl.load_primitives(entries, self.robot.joint_names, resolve)
+        for msg in errors + load_errors:
+            log.error(msg)
+        if not prims:
+            raise sl.ConfigError(f"no servable primitive in '{file}' ({len(entries)} entries, "
+                                 f"{len(errors) + len(load_errors)} refused, see above)")
+        return prims
+
+    # ------------------------------------------------------------------ outputs (control threads)
+    def _publish_command(self, q, qd, qdd, due: float) -> None:
+        m = self._cmd_msg
+        m.header.stamp = conv.ns_to_stamp(self._perf_to_ros + int(due * 1e9))  # the tick's nominal time
+        m.position = q.tolist()
+        m.velocity = qd.tolist()
+        self._cmd_pub.publish(m)
+
+    def _publish_trajectory(self, snap) -> None:
+        times, q, qd, qdd = trajectory_points(snap, self._tail)
+        late = time.perf_counter() - snap.t0  # seconds since the snapshot's time origin
+        if self.cfg.trajectory_stamp == "now":
+            stamp = max(self.get_clock().now().nanoseconds - int(late * 1e9), 0)
+        else:
+            stamp, keep = 0, times > late
+            times, q, qd, qdd = times[keep] - late, q[keep], qd[keep], qdd[keep]
+            if times.size == 0:
+                return
+        self._traj_pub.publish(conv.joint_trajectory(self.names, times, q, qd, qdd, stamp_ns=stamp))
+
+    def _poll_joint_state(self) -> None:
+        """Take the newest joint_states message (control thread) and hand it to the loop."""
+        sub, msg = self._state_sub, None
+        with sub.handle:
+            while (taken := sub.handle.take_message(sub.msg_type, sub.raw)) is not None:
+                msg = taken[0]
+        if msg is None:
+            return
+        try:
+            key = tuple(msg.name)
+            if self._state_index is None or self._state_index[0] != key:  # validate a new layout once
+                js = conv.joint_state_to_arrays(msg)
+                order = conv.reorder_joints(js.names, np.arange(len(js.names)), self.names, label="joint_states")
+                self._state_index = (key, order.astype(int))
+            idx = self._state_index[1]
+            q = np.asarray(msg.position, dtype=np.float64)[idx]
+            qd = np.asarray(msg.velocity, dtype=np.float64)[idx] if len(msg.velocity) == len(key) else None
+            if not np.all(np.isfinite(q)):
+                raise ValueError("position contains NaN or inf")
+        except (ValueError, IndexError) as exc:
+            self.get_logger().warn(f"joint_states ignored: {exc}", throttle_duration_sec=2.0)
+            return
+        if self.loop.measured is None:
+            self.get_logger().info(f"receiving joint_states on '{self._state_sub.topic_name}'")
+        self.loop.update_measured(q, qd)
+
+    # ------------------------------------------------------------------ services
+    def _guard(self, name, fn):
+        """Wrap a service callback: RequestError -> its code; anything else -> INTERNAL_ERROR."""
+        def callback(request, response):
+            try:
+                fn(request, response)
+                response.success = response.code.value == sl.Code.SUCCESS
+                return response
+            except sl.RequestError as exc:
+                code, msg = exc.code, exc.message
+            except Exception as exc:  # never let an exception escape a callback
+                self.get_logger().error(f"{name} failed:\n{traceback.format_exc()}")
+                code, msg = sl.Code.INTERNAL_ERROR, f"internal error in {name}: {type(exc).__name__}: {exc}"
+            response = type(response)()
+            response.success, response.code.value, response.message = False, int(code), msg
+            return response
+        return callback
+
+    def _condition(self, req, res) -> None:
+        self.core.check_condition_sizes(len(req.via_points), len(req.contexts),
+                                        [len(c.images) for c in req.contexts], req.preview_points)
+        r = self.core.condition(sl.ConditionRequest(
+            req.primitive, conv.via_points_from_msgs(req.via_points), conv.contexts_from_msgs(req.contexts),
+            bool(req.refine), int(req.refine_max_iterations), float(req.refine_tolerance), int(req.preview_points)))
+        res.code.value, res.message, res.handle, res.handle_expires_in = int(r.code), r.message, r.handle, r.expires_in
+        res.preview = conv.preview_to_msg(r.preview)
+        res.refine_max_error, res.refine_iterations, res.reachable = r.refine_max_error, r.refine_iterations, r.reachable
+
+    def _blend(self, req, res) -> None:
+        r = self.core.blend(sl.BlendRequest(req.handle_a, req.handle_b, req.schedule_phases, req.schedule_weights,
+                                            int(req.preview_points), bool(req.sample), int(req.seed)))
+        res.handle, res.handle_expires_in, res.preview = r.handle, r.expires_in, conv.preview_to_msg(r.preview)
+        res.message = f"blended into handle '{r.handle}'"
+
+    def _sample(self, req, res) -> None:
+        r = self.core.sample(sl.SampleRequest(req.handle, req.primitive, int(req.n_samples), int(req.n_points),
+                                              int(req.seed)))
+        conv.samples_to_response(r, res)
+        res.message = f"{res.n_samples} trajectories of {res.n_points} points"
+
+    def _list(self, req, res) -> None:
+        res.primitives = [conv.primitive_info_to_msg(d) for d in self.core.describe()]
+        res.message = f"{len(res.primitives)} primitive(s)"
+
+    def _set_rate(self, req, res) -> None:
+        rate = req.phase_rate
+        if not math.isfinite(rate) or abs(rate) > 1.0 / self.core.MIN_DURATION:
+            raise sl.RequestError(sl.Code.INVALID_REQUEST, f"phase_rate {rate!r} is invalid; expected a finite "
+                                  f"number with |phase_rate| <= {1.0 / self.core.MIN_DURATION:g} /s")
+        goal = self.loop.active_goal
+        if goal is not None and self.cfg.check_feasibility:
+            self.core.check_rate(goal.plan.reference, rate)
+        self.loop.set_rate(rate)
+        res.message = f"phase rate set to {rate:g} /s (ramp {self.cfg.phase_rate_ramp_time:g} s)"
+
+    # ------------------------------------------------------------------ action
+    def _execute(self, goal_handle):
+        g = goal_handle.request
+        result = Execute.Result()
+        try:
+            plan = self.core.plan_execution(sl.ExecuteRequest(g.handle, g.duration, g.phase_rate, g.cycles, g.reverse))
+            age = self.loop.measured_age()
+            if age > self.cfg.stale_timeout and self.loop.active_goal is None:
+                raise sl.RequestError(sl.Code.ROBOT_STATE_STALE, (
+                    f"no joint_states on '{self.cfg.joint_states_topic}' for {age:.3f} s" if math.isfinite(age)
+                    else f"no joint_states received on '{self.cfg.joint_states_topic}'")
+                    + f" (stale_timeout {self.cfg.stale_timeout:g} s); is the robot running?")
+            goal = self.loop.execute(ExecutionGoal(plan, str(bytes(goal_handle.goal_id.uuid).hex())))
+            period, canceled = 1.0 / self.cfg.feedback_rate_hz, False
+            while not goal.done.wait(period):
+                if goal_handle.is_cancel_requested and not canceled:
+                    self.loop.cancel(goal)
+                    canceled = True
+                p = goal.progress
+                goal_handle.publish_feedback(Execute.Feedback(phase=float(p.phase), cycle=int(p.cycle),
+                                                              phase_rate=float(p.phase_rate),
+                                                              tracking_error=float(p.tracking_error)))
+            out = goal.outcome
+            result.code.value, result.message = int(out.code), out.message
+            result.max_tracking_error, result.final_phase = out.max_tracking_error, out.final_phase
+            result.cycles_completed = int(out.cycles_completed)
+        except sl.RequestError as exc:
+            result.code.value, result.message = int(exc.code), exc.message
+        except Exception as exc:
+            self.get_logger().error(f"execute failed:\n{traceback.format_exc()}")
+            result.code.value, result.message = int(sl.Code.INTERNAL_ERROR), f"internal error: {exc!r}"
+        result.success = result.code.value == sl.Code.SUCCESS
+        try:
+            if result.success:
+                goal_handle.succeed()
+            elif result.code.value == sl.Code.CANCELED and goal_handle.is_cancel_requested:
+                goal_handle.canceled()
+            else:
+                goal_handle.abort()
+        except Exception as exc:  # e.g. the goal was already terminated
+            self.get_logger().warn(f"execute: could not set the goal state: {exc}")
+        return result
+
+    def shutdown(self) -> None:
+        self.loop.shutdown()
+        self._state_node.destroy_node()
+
+
+def main(args=None) -> int:
+    """Entry point of ``ros2 run deepprompt_ros primitive_server``; returns the exit code."""
+    rclpy.init(args=args)
+    node, code = None, 0
+    try:
+        node = PrimitiveServer()
+        executor = MultiThreadedExecutor(num_threads=6)
+        executor.add_node(node)
+        executor.spin()
+    except sl.ConfigError as exc:
+        rclpy.logging.get_logger("primitive_server").fatal(f"refusing to start: {exc}")
+        code = 2
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.shutdown()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())
