@@ -529,7 +529,7 @@ def test_set_rate_while_moving_keeps_the_stream_continuous_and_zero_holds(core):
     for _ in range(300):
         run.tick()
     assert goal.progress.phase == pytest.approx(held, abs=1e-12)
-    assert np.abs(run.qd[-1]).max() < 1e-6
+    assert np.abs(run.qd[-1]).max() < 1e-4  # settled on the held reference
     run.ctl.set_rate(goal, 0.5)
     run.until(lambda: goal.done.is_set())
     assert goal.outcome.code == Code.SUCCESS
