@@ -162,8 +162,11 @@ class ServerConfig:
                                    "with HANDLE_LIMIT (false).")
     preview_points: int = _param(100, "Default number of preview / sample phases.", min=2, max=100000)
     max_preview_points: int = _param(10000, "Largest preview_points / n_points accepted.", min=2, max=1000000)
-    preview_std_samples: int = _param(64, "Monte-Carlo trajectories behind the preview's standard deviation.",
+    preview_std_samples: int = _param(32, "Monte-Carlo trajectories behind the preview's standard deviation.",
                                       min=2, max=10000)
+    preview_std_points: int = _param(26, "The preview's standard deviation is estimated at this many evenly "
+                                     "spaced phases (at most preview_points) and interpolated linearly in "
+                                     "between (it varies slowly with the phase).", min=2, max=100000)
     max_via_points: int = _param(1000, "Largest number of via-points (and blending-schedule knots) accepted.",
                                  min=1, max=1000000)
     max_images: int = _param(16, "Largest number of images in one image context.", min=1, max=1000)
@@ -817,9 +820,14 @@ class PrimitiveServerCore:
         return prim.model.decode_per_phase(mean[None] + eps[:, None, :] * np.sqrt(var)[None], x)
 
     def _preview(self, prim: LoadedPrimitive, dist: StoredDistribution, n_points: int) -> Preview:
+        """Mean at n_points phases; std from preview_std_samples trajectories (ONE z each) at
+        preview_std_points phases, interpolated linearly onto the n_points."""
         x = np.linspace(0.0, 1.0, n_points)
         mean = self._decode(prim, dist, x, dist.eps)
-        std = self._samples(prim, dist, x, self.config.preview_std_samples, seed=0).std(axis=0)
+        xs = np.linspace(0.0, 1.0, min(n_points, self.config.preview_std_points))
+        std_s = self._samples(prim, dist, xs, self.config.preview_std_samples, seed=0).std(axis=0)
+        std = std_s if xs.size == n_points else np.stack(
+            [np.interp(x, xs, std_s[:, j]) for j in range(std_s.shape[1])], axis=1)
         return Preview(prim.joint_names, x, mean, std)
 
     # ------------------------------------------------------------------ ListPrimitives

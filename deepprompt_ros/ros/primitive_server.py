@@ -74,8 +74,9 @@ class PrimitiveServer(Node):
         ctl = ExecutionController(self.limits, 1.0 / rate, cfg)
         self._tail = BrakeTail(self.limits)
 
-        self._cmd_msg = JointState(name=self.names)
-        self._cmd_pub = self.create_publisher(JointState, cfg.command_topic, 10) if cfg.command_topic else None
+        self._cmd_cdr = conv.JointStateSerializer(self.names)
+        # deep history: a reliable subscriber that stalls for < 0.2 s loses no command
+        self._cmd_pub = self.create_publisher(JointState, cfg.command_topic, 200) if cfg.command_topic else None
         topic = f"{cfg.controller}/joint_trajectory"
         self._traj_pub = self.create_publisher(JointTrajectory, topic, 10) if cfg.controller else None
         # joint_states are taken by the control thread (StreamLoop.poll) from a subscription of a
@@ -157,11 +158,9 @@ class PrimitiveServer(Node):
 
     # ------------------------------------------------------------------ outputs (control threads)
     def _publish_command(self, q, qd, qdd, due: float) -> None:
-        m = self._cmd_msg
-        m.header.stamp = conv.ns_to_stamp(self._perf_to_ros + int(due * 1e9))  # the tick's nominal time
-        m.position = q.tolist()
-        m.velocity = qd.tolist()
-        self._cmd_pub.publish(m)
+        # pre-serialized JointState with the numbers patched in (~10 us instead of ~100 us);
+        # header.stamp = the tick's nominal time
+        self._cmd_pub.publish(self._cmd_cdr(q, qd, self._perf_to_ros + int(due * 1e9)))
 
     def _publish_trajectory(self, snap) -> None:
         times, q, qd, qdd = trajectory_points(snap, self._tail)
@@ -288,6 +287,12 @@ class PrimitiveServer(Node):
             self.get_logger().error(f"execute failed:\n{traceback.format_exc()}")
             result.code.value, result.message = int(sl.Code.INTERNAL_ERROR), f"internal error: {exc!r}"
         result.success = result.code.value == sl.Code.SUCCESS
+        st = self.loop.stats
+        self.get_logger().info(
+            f"execute '{g.handle}': code {result.code.value} ({result.message}); control loop so far: "
+            f"{st.ticks} ticks, {st.late} late by > 1 period, longest tick {st.max_tick_s * 1e3:.2f} ms, "
+            f"{self.loop.ctl.errors} ruckig errors, {st.cpu_s / max(st.work_ticks, 1) * 1e6:.0f} us CPU per tick; "
+            f"{st.period_summary(self.loop.dt)}")
         try:
             if result.success:
                 goal_handle.succeed()

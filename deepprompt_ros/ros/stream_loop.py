@@ -359,10 +359,40 @@ class ExecutionController:
 class LoopStats:
     """Counters of the control loop (read by the node for its status log and by benchmarks)."""
 
+    RING = 1 << 16
+
     def __init__(self):
         self.ticks = 0
         self.late = 0           # ticks that started more than one period after their deadline
         self.max_tick_s = 0.0   # longest tick (work, not waiting)
+        self._pub_times = np.zeros(self.RING)  # perf_counter() of the last command publications
+        self._n_pub = 0
+        self.cpu_s = 0.0        # CPU time of the control thread spent in ticks (time.thread_time)
+        self.work_ticks = 0     # ticks that computed a sample (not idle)
+
+    def published(self, t: float) -> None:
+        self._pub_times[self._n_pub % self.RING] = t
+        self._n_pub += 1
+
+    def publish_intervals(self) -> np.ndarray:
+        """Intervals between consecutive command publications (latest RING), in seconds; gaps
+        while idle (no goal) are excluded by the caller's choice of window (see node log)."""
+        n = min(self._n_pub, self.RING)
+        k = self._n_pub % self.RING
+        t = np.concatenate([self._pub_times[k:n], self._pub_times[:k]]) if self._n_pub > self.RING else \
+            self._pub_times[:n]
+        return np.diff(t)
+
+    def period_summary(self, dt: float) -> str:
+        """'p50/p99 |interval - dt| and intervals > 1.5 dt' of the command publications while
+        streaming (intervals > 1 s, i.e. idle time between goals, are left out)."""
+        iv = self.publish_intervals()
+        iv = iv[iv < 1.0]
+        if iv.size == 0:
+            return "no commands published yet"
+        err = np.abs(iv - dt) * 1e3
+        return (f"publish period error p50 {np.percentile(err, 50):.3f} ms, p99 {np.percentile(err, 99):.3f} ms, "
+                f"{int((iv > 1.5 * dt).sum())} of {iv.size} intervals > 1.5 periods")
 
 
 class StreamLoop:
@@ -386,6 +416,9 @@ class StreamLoop:
     """
 
     idle_poll = 0.01
+    #: seconds between two reads of the robot state while streaming (taking a JointState message
+    #: costs ~0.1 ms in Python: every tick would be a tenth of a 1 kHz period)
+    state_poll = 0.01
 
     def __init__(self, controller: ExecutionController, config: ServerConfig,
                  publish_command: Callable | None = None, publish_trajectory: Callable | None = None,
@@ -406,6 +439,7 @@ class StreamLoop:
         self._traj_cv = threading.Condition()
         self._traj_pending: Snapshot | None = None
         self._traj_every = max(1, int(round(1.0 / (config.trajectory_rate_hz * self.dt))))
+        self._poll_every = max(1, int(round(self.state_poll / self.dt)))
         self._next = 0.0
         self.stats = LoopStats()
         self.priority_error = ""
@@ -450,13 +484,15 @@ class StreamLoop:
 
         ``next_due``: time.perf_counter() at which the next tick is due (default now + dt)."""
         ctl = self.ctl
-        self.poll()
+        if self.stats.ticks % self._poll_every == 0:
+            self.poll()
         now = time.monotonic()
         measured = self._measured
         s = ctl.pop_due(measured, now)
         if s is not None and self._pub_cmd is not None:
             try:
                 self._pub_cmd(s.q, s.qd, s.qdd, next_due - self.dt if next_due is not None else time.perf_counter())
+                self.stats.published(time.perf_counter())
             except Exception as exc:  # a publisher failure must not stop the loop
                 self._on_error(f"command publish failed: {exc!r}")
         while self._commands:
@@ -548,12 +584,15 @@ class StreamLoop:
                 while perf() < self._next:
                     pass
             t0 = perf()
+            c0 = time.thread_time()
             try:
                 self.tick(self._next + dt)
             except Exception as exc:  # never let the control thread die
                 self._on_error(f"control loop tick failed: {exc!r}")
                 self._emergency_stop(exc)
             self.stats.max_tick_s = max(self.stats.max_tick_s, perf() - t0)
+            self.stats.cpu_s += time.thread_time() - c0
+            self.stats.work_ticks += 1
 
     def _emergency_stop(self, exc: Exception) -> None:
         a = self.ctl.active
