@@ -32,6 +32,7 @@ import json
 import os
 import pathlib
 import re
+import signal
 import sys
 import tempfile
 import time
@@ -69,13 +70,15 @@ def tiny_reach_model(path: pathlib.Path, steps: int = 300) -> pathlib.Path:
     return path
 
 
-def primitives_file(tmp: pathlib.Path) -> pathlib.Path:
+def primitives_file(tmp: pathlib.Path, model: str | None = None, steps: int = 300) -> pathlib.Path:
+    """Serve ``model``, else the shipped models/gen3_lite_reach.safetensors, else a tiny one."""
     from deepprompt_ros import paths
 
-    try:
-        model = paths.find_data_file("models", "gen3_lite_reach.safetensors")
-    except FileNotFoundError:
-        model = tiny_reach_model(tmp / "tiny_reach.safetensors")
+    if model is None:
+        try:
+            model = paths.find_data_file("models", "gen3_lite_reach.safetensors")
+        except FileNotFoundError:
+            model = tiny_reach_model(tmp / "tiny_reach.safetensors", steps)
     f = tmp / "primitives.yaml"
     f.write_text(f"primitives:\n  - name: reach\n    model: {model}\n")
     return f
@@ -95,30 +98,65 @@ def _role_node(name):
     return rclpy, node, ex
 
 
-def role_subscriber(out: str, seconds: float, start_file: str, states: bool) -> None:
-    """Record joint_command (arrival time, stamp, q, qd) and, if ``states``, joint_states (q)."""
+def _save(out: str, **arrays) -> None:
+    """np.savez to a temporary name, then rename: the file appears complete."""
+    tmp = pathlib.Path(out + ".part.npz")
+    np.savez(tmp, **arrays)
+    tmp.replace(out)
+
+
+def _load(path: pathlib.Path, proc, timeout: float) -> dict:
+    """Wait for a role's result file (not for its process to exit); fail with its log."""
+    end = time.monotonic() + timeout
+    while not path.exists():
+        if time.monotonic() > end or not proc.running():
+            if not path.exists():
+                raise RuntimeError(f"no {path.name}:\n{proc.output_tail()}")
+        time.sleep(0.05)
+    return dict(np.load(path))
+
+
+def _wait_file(path: pathlib.Path, ex=None) -> None:
+    while not path.exists():
+        if ex is not None:
+            ex.spin_once(timeout_sec=0.02)
+        else:
+            time.sleep(0.02)
+
+
+def role_subscriber(out: str, gate: str, states: bool) -> None:
+    """Record joint_command (arrival time, stamp, q, qd) and, if ``states``, joint_states (q),
+    between the files <gate>.go and <gate>.stop (messages before are dropped); <gate>.ready once
+    subscribed."""
     from rclpy.qos import QoSProfile
     from sensor_msgs.msg import JointState
 
     rclpy, node, ex = _role_node("bench_stream_subscriber")
     cmd, js = [], []
+    rec = [False]
     qos = QoSProfile(depth=1000)
     perf = time.perf_counter
-    node.create_subscription(JointState, "joint_command", lambda m: cmd.append(
-        (perf(), m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec, tuple(m.position), tuple(m.velocity))), qos)
+
+    def on_cmd(m):
+        if rec[0]:
+            cmd.append((perf(), m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec, tuple(m.position),
+                        tuple(m.velocity)))
+
+    node.create_subscription(JointState, "joint_command", on_cmd, qos)
     if states:
-        node.create_subscription(JointState, "joint_states", lambda m: js.append(tuple(m.position)), qos)
-    pathlib.Path(start_file).write_text("ready")
-    end = time.monotonic() + seconds
-    stop = pathlib.Path(start_file + ".stop")
-    while time.monotonic() < end and not stop.exists():
+        node.create_subscription(JointState, "joint_states", lambda m: rec[0] and js.append(tuple(m.position)), qos)
+    pathlib.Path(gate + ".ready").write_text("ready")
+    _wait_file(pathlib.Path(gate + ".go"), ex)
+    rec[0] = True
+    stop = pathlib.Path(gate + ".stop")
+    while not stop.exists():
         ex.spin_once(timeout_sec=0.05)
 
     def rows(values, width=6):
         return np.array(values, dtype=np.float64).reshape(len(values), width)
 
-    np.savez(out, t=np.array([c[0] for c in cmd]), stamp=np.array([c[1] for c in cmd], dtype=np.int64),
-             q=rows([c[2] for c in cmd]), qd=rows([c[3] for c in cmd]), js=rows(js))
+    _save(out, t=np.array([c[0] for c in cmd]), stamp=np.array([c[1] for c in cmd], dtype=np.int64),
+          q=rows([c[2] for c in cmd]), qd=rows([c[3] for c in cmd]), js=rows(js))
     node.destroy_node()
     rclpy.try_shutdown()
 
@@ -139,16 +177,19 @@ def _condition_request(rng, home):
 CALL_PERIOD = 0.04  # s between the starts of two Condition calls (25 calls/s, a busy planner)
 
 
-def role_client(out: str, seconds: float, min_calls: int) -> None:
-    """Call Condition every CALL_PERIOD s (or back to back when a call takes longer); record round trips."""
+def role_client(out: str, gate: str, seconds: float, min_calls: int) -> None:
+    """From the file <gate>.go on, call Condition every CALL_PERIOD s (back to back when a call
+    takes longer) for ``seconds`` and at least ``min_calls`` calls; record round trips."""
     from deepprompt_msgs.srv import Condition
 
     from deepprompt_ros.core.robots import load_robot
 
     rclpy, node, ex = _role_node("bench_condition_client")
     cli = node.create_client(Condition, f"{SERVER}/condition")
-    cli.wait_for_service(timeout_sec=30)
+    cli.wait_for_service(timeout_sec=60)
     home = load_robot("gen3_lite").home
+    pathlib.Path(gate + ".ready").write_text("ready")
+    _wait_file(pathlib.Path(gate + ".go"), ex)
     rng = np.random.default_rng(1)
     rtt, fails = [], 0
     end = time.monotonic() + seconds
@@ -164,7 +205,7 @@ def role_client(out: str, seconds: float, min_calls: int) -> None:
             ex.spin_once(timeout_sec=0.01)
         rtt.append(time.perf_counter() - t0)
         fails += not fut.result().success
-    np.savez(out, rtt=np.array(rtt), fails=fails)
+    _save(out, rtt=np.array(rtt), fails=fails)
     node.destroy_node()
     rclpy.try_shutdown()
 
@@ -259,25 +300,27 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="a few seconds instead of ~2 minutes")
     ap.add_argument("--loop-mode", default="thread", choices=("thread", "timer"))
     ap.add_argument("--param", action="append", default=[], help="extra primitive_server parameter name:=value")
+    ap.add_argument("--model", help="model file to serve as 'reach' (6 Gen3 lite joints, context 'object'); "
+                    "default: models/gen3_lite_reach.safetensors, else a tiny model trained here")
     ap.add_argument("--role", choices=("subscriber", "client"), help=argparse.SUPPRESS)
     ap.add_argument("--out", help=argparse.SUPPRESS)
     ap.add_argument("--seconds", type=float, default=0.0, help=argparse.SUPPRESS)
     ap.add_argument("--calls", type=int, default=0, help=argparse.SUPPRESS)
-    ap.add_argument("--start-file", help=argparse.SUPPRESS)
+    ap.add_argument("--gate", help=argparse.SUPPRESS)
     ap.add_argument("--states", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.role == "subscriber":
-        role_subscriber(args.out, args.seconds, args.start_file, args.states)
+        role_subscriber(args.out, args.gate, args.states)
         return 0
     if args.role == "client":
-        role_client(args.out, args.seconds, args.calls)
+        role_client(args.out, args.gate, args.seconds, args.calls)
         return 0
 
     from deepprompt_ros.core.robots import load_robot
     from deepprompt_ros.core.server_logic import ServerConfig, robot_limits
     from deepprompt_ros.ros.testing import NodeProcess, isolated_ros_env
 
-    stream_s, calls, n_exec = (4.0, 50, 3) if args.quick else (40.0, 1000, 30)
+    stream_s, calls, n_exec = (2.0, 20, 1) if args.quick else (40.0, 1000, 30)
     tmp = pathlib.Path(tempfile.mkdtemp(prefix="bench_ros_"))
     env = isolated_ros_env(tmp / "log")
     spec = load_robot("gen3_lite")
@@ -286,7 +329,7 @@ def main(argv=None) -> int:
     procs = []
     t_start = time.monotonic()
     try:
-        prim_file = primitives_file(tmp)
+        prim_file = primitives_file(tmp, args.model, 100 if args.quick else 300)
         procs.append(NodeProcess.start_module("deepprompt_ros.ros.sim_bridge", env, params={
             "camera.enabled": False, "publish_clock": False}))
         # stale_timeout 1 s: on a loaded machine the Python sim pauses; this benchmark measures the stream
@@ -296,35 +339,47 @@ def main(argv=None) -> int:
             ros_args += ["-p", p]
         server = NodeProcess.start_module("deepprompt_ros.ros.primitive_server", env, ros_args=ros_args)
         procs.append(server)
-        orch = Orchestrator(env)
-
-        def start_role(role, out, seconds, extra=()):
+        def start_role(role, out, gate, extra=()):
             cmd = [sys.executable, str(pathlib.Path(__file__).resolve()), "--role", role, "--out", str(out),
-                   "--seconds", str(seconds), *extra]
-            p = NodeProcess(cmd, env, tmp / f"{role}.log")
+                   "--gate", str(gate), *extra]
+            p = NodeProcess(cmd, env, tmp / f"{pathlib.Path(gate).name}.log")
             procs.append(p)
             return p
 
+        def wait_ready(gate):
+            _wait_file(pathlib.Path(str(gate) + ".ready"))
+
+        def go(gate, what="go"):
+            pathlib.Path(f"{gate}.{what}").write_text(what)
+
+        # measuring processes start now, in parallel with the nodes
+        g_sub, g_cli, g_sub2 = tmp / "stream", tmp / "client", tmp / "limits"
+        sub = start_role("subscriber", tmp / "stream.npz", g_sub)
+        cli = start_role("client", tmp / "client.npz", g_cli, ["--seconds", str(stream_s), "--calls", str(calls)])
+        sub2 = start_role("subscriber", tmp / "limits.npz", g_sub2, ["--states"])
+        orch = Orchestrator(env)
+        end = time.monotonic() + 60
+        while "receiving joint_states" not in server.output():
+            if time.monotonic() > end:
+                raise RuntimeError("primitive_server receives no joint_states:\n" + server.output_tail())
+            time.sleep(0.1)
+
         # ---- phase 1: one long execution; subscriber + Condition client in their own processes
-        ready = tmp / "sub_ready"
-        sub = start_role("subscriber", tmp / "stream.npz", stream_s + 6.0, ["--start-file", str(ready)])
-        while not ready.exists():
-            time.sleep(0.05)
+        for g in (g_sub, g_cli, g_sub2):
+            wait_ready(g)
         rng = np.random.default_rng(0)
         r = orch.condition(_condition_request(rng, spec.home))
         assert r.success, r.message
-        time.sleep(1.0)
-        gh, res_fut = orch.send(r.handle, stream_s + 4.0)
-        time.sleep(1.0)
-        cli = start_role("client", tmp / "client.npz", stream_s, ["--calls", str(calls)])
-        cli.wait(stream_s * 10 + 120)
+        go(g_sub)
+        gh, res_fut = orch.send(r.handle, stream_s + 1.5)
+        orch.c.spin_for(0.5)
+        go(g_cli)
+        client = _load(tmp / "client.npz", cli, stream_s * 10 + 120)
         res = orch.wait(res_fut, stream_s + 30)
-        sub.wait(30)
-        stream = dict(np.load(tmp / "stream.npz"))
-        client = dict(np.load(tmp / "client.npz"))
+        go(g_sub, "stop")
+        stream = _load(tmp / "stream.npz", sub, 60)
         metrics = stream_metrics(stream, dt)
         # the server's own view (publication instants, no transport / subscriber scheduling)
-        time.sleep(0.5)
         found = re.findall(r"publish period error p50 ([\d.]+) ms, p99 ([\d.]+) ms, (\d+) of (\d+) intervals",
                            server.output())
         if found:
@@ -335,20 +390,14 @@ def main(argv=None) -> int:
                        long_goal_code=int(res.code.value) if res is not None else -1)
 
         # ---- phase 2: random executions; the subscriber records commands and joint states
-        ready2 = tmp / "sub2_ready"
-        per_exec = 3.0
-        sub2 = start_role("subscriber", tmp / "limits.npz", n_exec * (per_exec + 2.5) + 20,
-                          ["--start-file", str(ready2), "--states"])
-        while not ready2.exists():
-            time.sleep(0.05)
-        time.sleep(1.0)
+        go(g_sub2)
         codes = {}
         for i in range(n_exec):
             r = orch.condition(_condition_request(rng, spec.home))
             if not r.success:
                 codes["condition_failed"] = codes.get("condition_failed", 0) + 1
                 continue
-            gh, fut = orch.send(r.handle, float(rng.uniform(2.0, 4.0)))
+            gh, fut = orch.send(r.handle, float(rng.uniform(2.0, 2.5 if args.quick else 4.0)))
             action = rng.choice(["finish", "preempt", "cancel", "rate"])
             orch.c.spin_for(float(rng.uniform(0.3, 1.5)))
             if action == "cancel":
@@ -365,18 +414,20 @@ def main(argv=None) -> int:
             res = orch.wait(fut, 30.0)
             name = str(res.code.value) if res is not None else "timeout"
             codes[name] = codes.get(name, 0) + 1
-        (tmp / "sub2_ready.stop").write_text("stop")
-        sub2.wait(60)
-        lim_path = tmp / "limits.npz"
-        if lim_path.exists():
-            viol, js_viol, worst = limit_check(dict(np.load(lim_path)), dt, limits)
-        else:
-            viol, js_viol, worst = -1, -1, {}
+        orch.c.spin_for(0.5)
+        go(g_sub2, "stop")
+        viol, js_viol, worst = limit_check(_load(tmp / "limits.npz", sub2, 60), dt, limits)
         metrics.update(limit_violations=viol + js_viol, limit_violations_measured=js_viol,
                        executions=n_exec, **{f"worst_{k}": v for k, v in worst.items()})
         orch.close()
         metrics["exec_codes"] = json.dumps(codes, sort_keys=True).replace(" ", "")
     finally:
+        for p in procs:  # all at once, then wait for each (SIGKILL after 5 s)
+            if p.running():
+                try:
+                    os.killpg(p.pid, signal.SIGINT)
+                except ProcessLookupError:
+                    pass
         for p in procs:
             p.stop()
     metrics["wall_s"] = time.monotonic() - t_start

@@ -378,3 +378,19 @@ def test_stale_joint_states_stop_the_stream(setup):
     assert res.code.value == ResultCode.ROBOT_STATE_STALE and "is the robot running?" in res.message
     r = call(setup, ListPrimitives, "list_primitives", ListPrimitives.Request())
     assert r.success
+
+
+def test_benchmark_quick_mode_runs_and_reports_every_metric(setup):
+    """Smoke run of bench/bench_ros.py --quick (its own processes, the model trained above)."""
+    import subprocess
+    import sys
+
+    bench = pathlib.Path(__file__).resolve().parent.parent / "bench" / "bench_ros.py"
+    out = subprocess.run([sys.executable, str(bench), "--quick", "--model", str(setup["tmp"] / "reach.safetensors")],
+                         capture_output=True, text=True, timeout=240, start_new_session=True)
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    last = dict(kv.split("=") for kv in out.stdout.strip().splitlines()[-1].split())
+    assert set(last) >= {"srv_p50_ms", "srv_p99_ms", "stream_hz", "stream_period_p99_err_ms", "stream_missed",
+                         "limit_violations"}
+    assert float(last["srv_p50_ms"]) > 0 and float(last["stream_hz"]) > 100
+    assert int(last["limit_violations"]) == 0

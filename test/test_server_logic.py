@@ -599,3 +599,37 @@ def test_trajectory_snapshots_and_brake_tail_make_valid_controller_messages(core
     nearly = snap._replace(qd=snap.qd * 1e-12, qdd=snap.qdd * 1e-12)  # at rest up to rounding: zeroed
     times, q, qd, qdd = trajectory_points(nearly, tail)
     assert times.shape == (3,) and np.all(qd[-1] == 0) and np.all(qdd[-1] == 0)
+
+
+def test_reverse_runs_the_primitive_backwards(core):
+    r = core.condition(sl.ConditionRequest("reach"))
+    plan = core.plan_execution(sl.ExecuteRequest(r.handle, duration=3.0, reverse=True))
+    assert plan.start_phase == 1.0 and plan.end_phase == 0.0
+    run = Run(plan.reference.positions([1.0])[0])
+    goal = ExecutionGoal(plan)
+    run.ctl.start_goal(goal, run.measured)
+    phases = []
+    run.until(lambda: (phases.append(goal.progress.phase), goal.done.is_set())[1])
+    assert goal.outcome.code == Code.SUCCESS and goal.outcome.final_phase == 0.0
+    assert np.all(np.diff(phases) <= 1e-12)  # the phase only decreases
+    np.testing.assert_allclose(run.q[-1], plan.reference.positions([0.0])[0], atol=1e-6)
+    assert run.report().ok()
+
+
+def test_rhythmic_goal_runs_its_cycles_without_a_seam(tmp_path):
+    path = save_model(tmp_path / "wave.safetensors", seed=4, phase_type="rhythmic", y_std=0.004)
+    prims = {"wave": sl.load_primitive(sl.PrimitiveEntry("wave", str(path)), NAMES, pathlib.Path)}
+    core = sl.PrimitiveServerCore(prims, CFG, LIMITS)
+    h = core.condition(sl.ConditionRequest("wave")).handle
+    plan = core.plan_execution(sl.ExecuteRequest(h, duration=1.5, cycles=2))
+    ref = plan.reference
+    np.testing.assert_allclose(ref.positions([0.0]), ref.positions([1.0]), atol=1e-12)  # periodic
+    run = Run(ref.positions([0.0])[0])
+    goal = ExecutionGoal(plan)
+    run.ctl.start_goal(goal, run.measured)
+    cycles = set()
+    run.until(lambda: (cycles.add(goal.progress.cycle), goal.done.is_set())[1])
+    assert goal.outcome.code == Code.SUCCESS and goal.outcome.cycles_completed == 2
+    assert {0, 1} <= cycles
+    assert np.ptp(np.array(run.q), axis=0).max() > 0.01  # it moved
+    assert run.report().ok()  # limits hold across the wrap x: 1 -> 0

@@ -1111,3 +1111,7 @@ class PrimitiveServerCore:
                                f"{1 / abs(rate):.4g} s) {self.limits.names[j]} would need {need[j]:.3g} rad/s; its "
                                f"velocity limit is {vmax[j]:.3g} rad/s: use a duration >= {t_min:.3g} s "
                                f"(phase rate <= {1 / t_min:.4g} /s)")
+
+
+if __name__ == "__main__":  # python -m deepprompt_ros.core.server_logic: the parameter table (Markdown)
+    print(parameters_markdown())
