@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 export AMENT_PREFIX_PATH := $(abspath $(VENV))$(if $(AMENT_PREFIX_PATH),:$(AMENT_PREFIX_PATH))
 
-.PHONY: setup run test bench train-sine clean
+.PHONY: setup run test bench models train-sine train-reach train-shake clean
 
 setup:
 	bash tools/setup.sh $(VENV)
@@ -19,9 +19,15 @@ bench: setup
 run: setup
 	$(PY) -m deepprompt_ros.run_main
 
-# Reproduces models/bimodal_sine.safetensors (the shipped primitive).
+# Reproduce the shipped primitives in models/ (seeded; see README "Shipped models").
+TRAIN := $(PY) -m deepprompt_ros.core.train
+models: train-sine train-reach train-shake
 train-sine: setup
-	$(PY) -m deepprompt_ros.core.train --builtin bimodal_sine --config config/train_bimodal_sine.yaml --out models/bimodal_sine.safetensors
+	$(TRAIN) --builtin bimodal_sine --config config/train_bimodal_sine.yaml --out models/bimodal_sine.safetensors
+train-reach: setup
+	$(TRAIN) --builtin gen3_lite_reach --config config/train_gen3_lite_reach.yaml --out models/gen3_lite_reach.safetensors
+train-shake: setup
+	$(TRAIN) --builtin wam_shake --config config/train_wam_shake.yaml --out models/wam_shake.safetensors
 
 clean:
 	rm -rf build install log $(VENV)

@@ -325,26 +325,38 @@ def bimodal_sine(n_demos: int = 200, n_points: int = 100, n_joints: int = 1, see
 
 
 def rhythmic_shake(n_demos: int = 30, n_points: int = 100, n_joints: int = 7, seed: int = 0,
-                   period: float = 1.0) -> DemoDataset:
+                   period: float = 2.0, offset=None, joint_names: Sequence[str] | None = None) -> DemoDataset:
     """One-cycle shaking demonstrations for rhythmic primitives (phase = [sin 2πx, cos 2πx]).
 
-    Each joint oscillates around an offset with a per-demo amplitude and a second harmonic; the
-    demo is exactly one period long, so its start and end coincide up to noise.
+    Each joint oscillates around ``offset`` (default: spread over ±0.3 rad) with a per-demo
+    amplitude (0.08–0.2 rad), phase and a second harmonic (≤ 0.04 rad); the demo is exactly one
+    period long, so its start and end coincide up to noise. Peak speed ≤ 0.9 rad/s at period 2 s.
     """
     rng = np.random.default_rng(seed)
     x = np.linspace(0.0, 1.0, n_points, endpoint=True)
-    names = tuple(f"joint_{j + 1}" for j in range(n_joints))
-    offset = np.linspace(-0.3, 0.3, n_joints)
+    names = tuple(joint_names) if joint_names is not None else tuple(f"joint_{j + 1}" for j in range(n_joints))
+    n_joints = len(names)
+    offset = np.linspace(-0.3, 0.3, n_joints) if offset is None else np.asarray(offset, dtype=np.float64)
     demos = []
     for i in range(n_demos):
-        a1 = rng.uniform(0.15, 0.3, n_joints)
-        a2 = rng.uniform(0.0, 0.08, n_joints)
+        a1 = rng.uniform(0.08, 0.2, n_joints)
+        a2 = rng.uniform(0.0, 0.04, n_joints)
         ph = rng.uniform(-0.2, 0.2, n_joints)
         q = offset + a1 * np.sin(2 * np.pi * x[:, None] + ph) + a2 * np.sin(4 * np.pi * x[:, None])
         q = q + 0.002 * rng.standard_normal(q.shape)
         demos.append(Demonstration(name=f"shake_{i:04d}", t=x * period, q=q, joint_names=names,
                                    phase_type="rhythmic"))
     return DemoDataset(tuple(demos), source=f"rhythmic_shake(seed={seed})")
+
+
+# Barrett WAM joint names and ready pose of deepprompt_ros/resources/urdf/wam.urdf.
+WAM_JOINTS = tuple(f"wam_j{i}" for i in range(1, 8))
+WAM_READY = (0.0, 0.5, 0.0, 2.0, 0.0, 0.6, 0.0)
+
+
+def wam_shake(seed: int = 0, **kwargs) -> DemoDataset:
+    """Shaking ("make a mojito") cycles on the Barrett WAM around its ready pose."""
+    return rhythmic_shake(seed=seed, joint_names=WAM_JOINTS, offset=WAM_READY, **kwargs)
 
 
 def gen3_lite_reach(seed: int = 0, **kwargs) -> DemoDataset:
@@ -355,7 +367,8 @@ def gen3_lite_reach(seed: int = 0, **kwargs) -> DemoDataset:
     return reach_demos("gen3_lite", seed=seed, **kwargs)
 
 
-BUILTIN = {"bimodal_sine": bimodal_sine, "rhythmic_shake": rhythmic_shake, "gen3_lite_reach": gen3_lite_reach}
+BUILTIN = {"bimodal_sine": bimodal_sine, "rhythmic_shake": rhythmic_shake, "wam_shake": wam_shake,
+           "gen3_lite_reach": gen3_lite_reach}
 
 
 def builtin_dataset(name: str, **kwargs) -> DemoDataset:

@@ -346,27 +346,35 @@ class DeepProMP:
         h = np.maximum(np.maximum(pre, 0.0) @ self._dec.W[1].T + self._dec.b[1], 0.0)
         return (h @ self._dec.W[2].T + self._dec.b[2]) * self._y_std + self._y_mean
 
-    def decoder_jacobian(self, z: np.ndarray, x: np.ndarray):
+    def decoder_jacobian(self, z: np.ndarray, x: np.ndarray, smoothing: float | None = None):
         """μ_y(z, x_i) and ∂μ_y/∂z at each phase, joint units.
 
         Parameters
         ----------
         z : array, shape (k,) or (K, k)
         x : array, shape (n,)
+        smoothing : float, optional
+            β of a softplus log(1 + e^{βh})/β standing in for ReLU (a smooth surrogate of the
+            decoder used by refinement's continuation; None = the exact ReLU decoder).
 
         Returns
         -------
         y : array, shape (n, d) or (K, n, d); jac : array, shape (n, d, k) or (K, n, d, k)
         """
+        if smoothing is None:
+            act = lambda h: np.maximum(h, 0.0)  # noqa: E731
+            dact = lambda h: (h > 0).astype(np.float64)  # noqa: E731
+        else:
+            b = float(smoothing)
+            act = lambda h: np.logaddexp(0.0, b * h) / b  # noqa: E731
+            dact = lambda h: 0.5 * (1.0 + np.tanh(0.5 * b * h))  # noqa: E731  (= sigmoid(βh))
         zw = z @ self._dec_W1z.T  # (h,) or (K, h)
         pre1 = self._phase_feats(x) @ self._dec_W1x.T + self._dec.b[0] + zw[..., None, :]  # (..., n, h)
-        h1 = np.maximum(pre1, 0.0)
-        pre2 = h1 @ self._dec.W[1].T + self._dec.b[1]
-        h2 = np.maximum(pre2, 0.0)
-        y = (h2 @ self._dec.W[2].T + self._dec.b[2]) * self._y_std + self._y_mean
-        a = (pre1 > 0)[..., None] * self._dec_W1z  # (..., n, h, k)
-        b = np.einsum("ij,...njk->...nik", self._dec.W[1], a) * (pre2 > 0)[..., None]
-        jac = np.einsum("dj,...njk->...ndk", self._dec.W[2], b) * self._y_std[:, None]
+        pre2 = act(pre1) @ self._dec.W[1].T + self._dec.b[1]
+        y = (act(pre2) @ self._dec.W[2].T + self._dec.b[2]) * self._y_std + self._y_mean
+        a = dact(pre1)[..., None] * self._dec_W1z  # (..., n, h, k)
+        b2 = np.matmul(self._dec.W[1], a) * dact(pre2)[..., None]  # batched BLAS, (..., n, h, k)
+        jac = np.matmul(self._dec.W[2], b2) * self._y_std[:, None]  # (..., n, d, k)
         return y, jac
 
     def mean_trajectory(self, latent: LatentGaussian, x) -> np.ndarray:
@@ -433,8 +441,9 @@ class DeepProMP:
 
     # ------------------------------------------------------------------ refinement
     def refine(self, latent: LatentGaussian, via_x, via_y, joint_mask=None, max_iterations: int = 200,
-               tol: float = 1e-6, n_samples: int = 32, seed: int = 0, sigma_target: np.ndarray | None = None,
-               sigma_iterations: int = 10) -> RefinementResult:
+               tol: float = 1e-6, n_samples: int = 16, seed: int = 0, sigma_target: np.ndarray | None = None,
+               sigma_iterations: int = 5, max_restarts: int = 5,
+               smoothing_schedule: Sequence[float] = (3.0, 10.0, 30.0, 100.0)) -> RefinementResult:
         """Deployment-time refinement of (μ̃, σ̃) (paper Eq. 5 and appendix).
 
         Stage 1 moves μ̃ — starting at the given (posterior) mean — so that the trajectory the robot
@@ -444,9 +453,11 @@ class DeepProMP:
         K FIXED samples ε_k (common random numbers: fresh samples at every step leave Monte-Carlo
         noise of ~1e-2 that no optimizer removes).
 
-        Unreachable via-points: when stage 1 stops at a stationary point (the damped step no longer
-        decreases the squared error, or the gradient Jᵀr vanishes) or at its iteration budget with
-        max error > tol, the result says ``reachable=False`` and carries the best fit and its residuals.
+        Unreachable via-points: stage 1 stops at a stationary point when no damped step (damping up
+        to 1e6) decreases the squared error or the gradient Jᵀr vanishes; it then restarts from
+        small seeded perturbations (``max_restarts``) while iterations remain (all runs share the
+        ``max_iterations`` budget). If the best fit still misses by more than ``tol``, the result
+        says ``reachable=False`` and carries that best fit and its residuals — never a silent miss.
 
         Parameters
         ----------
@@ -467,45 +478,88 @@ class DeepProMP:
             raise ValueError("max_iterations must be >= 1 and tol > 0")
         mf = mask.astype(np.float64)
 
+        smoothing = [None]
+
         def residual(z):
-            y_hat, jac = self.decoder_jacobian(z, x)
+            y_hat, jac = self.decoder_jacobian(z, x, smoothing[0])
             r = (y - y_hat) * mf
             return r, jac * mf[:, :, None]
 
-        mu = np.array(latent.mean, dtype=np.float64)
-        r, jac = residual(mu)
-        cost = float((r ** 2).sum())
-        lam, it, reason = 1e-3, 0, "budget"
         eye = np.eye(self.latent_dim)
-        while it < max_iterations:
-            if np.abs(r).max() <= 0.1 * tol:
-                reason = "converged"
-                break
+        rng = np.random.default_rng(seed)
+
+        def levenberg_marquardt(mu, budget):
+            """Levenberg–Marquardt with Nielsen's damping update (Madsen, Nielsen & Tingleff 2004,
+            "Methods for non-linear least squares problems", Alg. 3.16); returns (mu, r, its, reason).
+
+            δ = (JᵀJ + λI)⁻¹ Jᵀ r; the step is accepted when the squared error decreases, and λ
+            follows the gain ratio ρ between actual and predicted decrease (λ ← λ·max(1/3, 1−(2ρ−1)³)
+            on success, λ ← λν, ν ← 2ν on failure)."""
+            r, jac = residual(mu)
+            cost = float((r ** 2).sum())
             J = jac.reshape(-1, self.latent_dim)
-            rv = r.reshape(-1)
-            g = J.T @ rv
-            if np.abs(g).max() < 1e-15 * max(1.0, cost):
-                reason = "stationary (zero gradient)"
-                break
-            A = J.T @ J
-            improved = False
-            while lam < 1e12:
+            A, g = J.T @ J, J.T @ r.reshape(-1)
+            lam, nu, it = 1e-3 * max(float(np.diag(A).max()), 1e-12), 2.0, 0
+            while it < budget:
+                if np.abs(r).max() <= 0.1 * tol:
+                    return mu, r, it, "converged"
+                if np.abs(g).max() < 1e-15 * max(1.0, cost):
+                    return mu, r, it, "stationary (zero gradient)"
+                it += 1
                 step = np.linalg.solve(A + lam * eye, g)
                 r_new, jac_new = residual(mu + step)
                 c_new = float((r_new ** 2).sum())
+                predicted = float(step @ (lam * step + g))  # = cost − ‖r − Jδ‖² (> 0)
+                rho = (cost - c_new) / max(predicted, 1e-300)
                 if c_new < cost:
-                    mu, r, jac, cost = mu + step, r_new, jac_new, c_new
-                    lam = max(lam / 5.0, 1e-12)
-                    improved = True
-                    break
-                lam *= 4.0
-            it += 1
-            if not improved:
-                reason = "stationary (no descent step)"
-                break
+                    mu, r, cost = mu + step, r_new, c_new
+                    J = jac_new.reshape(-1, self.latent_dim)
+                    A, g = J.T @ J, J.T @ r.reshape(-1)
+                    lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                    nu = 2.0
+                else:
+                    lam *= nu
+                    nu *= 2.0
+                    if lam > 1e8 * max(float(np.diag(A).max()), 1e-12):
+                        return mu, r, it, "stationary (no descent step)"
+            return mu, r, it, "budget"
+
+        def solve_from(mu0, budget):
+            """1) LM on the exact decoder from mu0 (enough when mu0 lies in the basin).
+            2) Otherwise continuation in the decoder's smoothness: the exact decoder is piecewise
+               linear (ReLU), so the squared error has kinks where LM stalls far from a solution.
+               LM runs on smooth surrogates (softplus of increasing sharpness β), then polishes on
+               the exact decoder — the trajectory that is executed. The better fit is kept."""
+            mu, r, it, reason = levenberg_marquardt(mu0, max(1, budget // 4))
+            if np.abs(r).max() > tol and budget - it > len(smoothing_schedule) and smoothing_schedule:
+                mu2 = mu0
+                for beta in smoothing_schedule:
+                    smoothing[0] = beta
+                    mu2, _, used, _ = levenberg_marquardt(mu2, max(1, (budget // 4) // len(smoothing_schedule)))
+                    it += used
+                smoothing[0] = None
+                mu2, r2, used, reason2 = levenberg_marquardt(mu2, budget - it)
+                it += used
+                if np.abs(r2).max() < np.abs(r).max():
+                    mu, r, reason = mu2, r2, reason2
+            return mu, r, it, reason
+
+        # Restarts (exact LM only) from small seeded perturbations of the best point while the
+        # shared iteration budget lasts; the best fit over all runs is kept.
+        mu, r, it, reason = solve_from(np.array(latent.mean, dtype=np.float64), max_iterations)
+        restarts = 0
+        while np.abs(r).max() > tol and it < max_iterations and restarts < max_restarts:
+            restarts += 1
+            start = mu + rng.standard_normal(self.latent_dim) * 0.05 * np.sqrt(latent.var)
+            mu2, r2, it2, reason2 = levenberg_marquardt(start, max_iterations - it)
+            it += it2
+            if np.abs(r2).max() < np.abs(r).max():
+                mu, r, reason = mu2, r2, reason2
         max_err = float(np.abs(r).max())
         if max_err <= tol:
             reason = "converged"
+        elif restarts:
+            reason += f" after {restarts} restarts"
 
         # Stage 2: σ̃ with fixed ε (paper objective in σ̃ at the refined mean).
         eps = np.random.default_rng(seed).standard_normal((n_samples, self.latent_dim))

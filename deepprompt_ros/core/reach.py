@@ -1,7 +1,8 @@
 """Scripted reaching demonstrations for a robot arm (the primitive shipped for ``make run``).
 
 A demonstrator moves the arm from its home configuration to a point ``approach_height`` above an
-object, passing through a lifted intermediate configuration whose height varies per demo. Joint
+object, passing through a lifted intermediate configuration whose height varies per demo, and
+turns the wrist (last joint) towards the object's bearing. Joint
 targets come from damped-least-squares inverse kinematics on the pinocchio model; the timing is a
 minimum-jerk profile. Each demonstration carries the object's position as its context ``object``.
 """
@@ -63,6 +64,9 @@ def reach_demos(robot: str = "gen3_lite", n_demos: int = 120, n_points: int = 10
         mid, err_mid = inverse_kinematics(kin, lift, spec.home)
         if err_mid > 1e-3:
             continue
+        # the wrist turns the gripper towards the object's bearing (a pure tool-axis rotation)
+        goal[-1] = np.clip(spec.home[-1] + np.arctan2(obj[1], obj[0]), spec.lower[-1], spec.upper[-1])
+        mid[-1] = 0.5 * (spec.home[-1] + goal[-1])
         # piecewise min-jerk through home → mid → goal, blended into one smooth path
         a = _min_jerk(np.clip(s / 0.5, 0, 1))[:, None]
         b = _min_jerk(np.clip((s - 0.5) / 0.5, 0, 1))[:, None]

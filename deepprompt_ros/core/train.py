@@ -63,6 +63,7 @@ class TrainConfig:
     consistency_weight: float = 0.0
     prior_kl_weight: float = 0.0
     consistency_tol: float = 0.15
+    consistency_samples: int = 8
     n_val: int = 0  # 0 → 10 % of the demonstrations (at least 1)
     val_every: int = 250
     val_via_points: int = 5
@@ -288,16 +289,23 @@ def loss_fn(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, idx, gen, bet
     loss = nll + beta * kl
     cons = torch.zeros(())
     if cfg.consistency_weight > 0:
-        # Sample consistency: a trajectory decoded from z ~ q(z | subset) must look like SOME
-        # demonstration that agrees with the subset (not necessarily the one it came from). The
-        # decoder thus maps every region q(z | subset) covers onto a demonstrated mode instead of
-        # in between; z is detached so that only the KL term shapes q(z | subset).
-        z_s = (mu_s + torch.randn(mu_s.shape, generator=gen) * var_s.sqrt()).detach()
-        y_s = net.decode(z_s, data.x)  # (B, T, d)
-        err = ((y_s.unsqueeze(1) - y.unsqueeze(0)) ** 2).sum((2, 3))  # (B_i, B_j)
-        ok = consistent_demos(cfg, data, idx, kinds, w_sub)
-        err = torch.where(ok, err, torch.full((), float("inf")))
-        cons = 0.5 * err.amin(1) / cfg.sigma_y ** 2
+        # Sample consistency (Chamfer distance between sets): the M trajectories decoded from
+        # z ~ q(z | subset) and the demonstrations of the batch that agree with the subset must
+        # match as sets — every sample near SOME consistent demo (no sample between modes) and
+        # every consistent demo near some sample (no mode dropped). z is detached: only the KL
+        # term shapes q(z | subset); this term shapes the decoder.
+        m = cfg.consistency_samples
+        eps = torch.randn((mu_s.shape[0], m, mu_s.shape[1]), generator=gen)
+        z_s = (mu_s.unsqueeze(1) + eps * var_s.sqrt().unsqueeze(1)).detach()  # (B, M, k)
+        y_s = net.decode(z_s.reshape(-1, z_s.shape[-1]), data.x).reshape(z_s.shape[0], m, *y.shape[1:])
+        err = ((y_s.unsqueeze(2) - y.unsqueeze(0).unsqueeze(0)) ** 2).sum((3, 4))  # (B_i, M, B_j)
+        ok = consistent_demos(cfg, data, idx, kinds, w_sub).unsqueeze(1)  # (B_i, 1, B_j)
+        inf = torch.full((), float("inf"))
+        precision = torch.where(ok, err, inf).amin(2).mean(1)  # nearest consistent demo per sample
+        cover = err.amin(1)  # (B_i, B_j): nearest sample per demo
+        okf = ok.squeeze(1).float()
+        coverage = (cover * okf).sum(1) / okf.sum(1)
+        cons = 0.5 * (precision + coverage) / cfg.sigma_y ** 2
         loss = loss + cfg.consistency_weight * cons
     return loss.mean(), nll.mean().item(), kl.mean().item(), cons.mean().item()
 
@@ -398,7 +406,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="train", description="Train a DeepProMP on demonstrations.")
     src = ap.add_mutually_exclusive_group(required=True)
     src.add_argument("--data", help="dataset folder of .npz/.csv demonstrations (see deepprompt_ros.core.dataset)")
-    src.add_argument("--builtin", help="built-in generated dataset: bimodal_sine | rhythmic_shake | gen3_lite_reach")
+    src.add_argument("--builtin", help="built-in generated dataset: bimodal_sine | rhythmic_shake | wam_shake | gen3_lite_reach")
     ap.add_argument("--config", help="training YAML (keys of TrainConfig); defaults if omitted")
     ap.add_argument("--out", required=True, help="output checkpoint path (.safetensors)")
     ap.add_argument("--steps", type=int, help="override the number of updates")
