@@ -633,3 +633,14 @@ def test_rhythmic_goal_runs_its_cycles_without_a_seam(tmp_path):
     assert {0, 1} <= cycles
     assert np.ptp(np.array(run.q), axis=0).max() > 0.01  # it moved
     assert run.report().ok()  # limits hold across the wrap x: 1 -> 0
+
+
+def test_linearized_preview_std_matches_sampling_for_a_decoder_linear_in_z(models):
+    lin = make_core(models, names=("reach",))
+    mc = make_core(models, dataclasses.replace(sl.ServerConfig(), preview_std_method="sampled",
+                                               preview_std_samples=4000), ("reach",))
+    req = sl.ConditionRequest("reach", [via(0.3, SPEC.home + 0.01)], preview_points=26)
+    a, b = lin.condition(req).preview.std, mc.condition(req).preview.std
+    rel = np.abs(a - b) / b
+    assert np.median(rel) < 0.03  # Monte-Carlo error of 4000 samples ~ 1 %
+    assert rel.max() < 0.25  # where a sample leaves the linear region of a few ReLUs

@@ -162,7 +162,12 @@ class ServerConfig:
                                    "with HANDLE_LIMIT (false).")
     preview_points: int = _param(100, "Default number of preview / sample phases.", min=2, max=100000)
     max_preview_points: int = _param(10000, "Largest preview_points / n_points accepted.", min=2, max=1000000)
-    preview_std_samples: int = _param(32, "Monte-Carlo trajectories behind the preview's standard deviation.",
+    preview_std_method: str = _param("linearized", "Standard deviation of the preview: 'linearized' (first "
+                                     "order in z: |∂μ_y/∂z| σ_z at the mean latent, exact where the decoder is "
+                                     "linear in z, ~1 ms) or 'sampled' (Monte Carlo over preview_std_samples "
+                                     "trajectories, ~4 ms for a 128-unit decoder). Blended handles are always "
+                                     "sampled.", choices=("linearized", "sampled"))
+    preview_std_samples: int = _param(32, "Monte-Carlo trajectories behind a sampled standard deviation.",
                                       min=2, max=10000)
     preview_std_points: int = _param(26, "The preview's standard deviation is estimated at this many evenly "
                                      "spaced phases (at most preview_points) and interpolated linearly in "
@@ -813,19 +818,26 @@ class PrimitiveServerCore:
     def _samples(self, prim: LoadedPrimitive, dist: StoredDistribution, x: np.ndarray, n: int,
                  seed: int) -> np.ndarray:
         """n trajectories, ONE ε per trajectory: shape (n, T, d)."""
-        eps = np.random.default_rng(seed).standard_normal((n, prim.model.latent_dim))
-        if isinstance(dist, ConditionedLatent):
-            return prim.model.decode(dist.latent.mean + eps * dist.latent.std, x)
-        mean, var = dist.latent_at(x)
-        return prim.model.decode_per_phase(mean[None] + eps[:, None, :] * np.sqrt(var)[None], x)
+        k, t = prim.model.latent_dim, x.shape[0]
+        eps = np.random.default_rng(seed).standard_normal((n, k))
+        mean, var = dist.latent_at(x)  # (T, k) each
+        z = mean[None] + eps[:, None, :] * np.sqrt(var)[None]  # (n, T, k)
+        # one (n T) x k matrix through the decoder: a single matrix product per layer (numpy's
+        # stacked 3-D matmul is ~10x slower for these sizes)
+        y = prim.model.decode_per_phase(z.reshape(n * t, k), np.tile(x, n))
+        return y.reshape(n, t, -1)
 
     def _preview(self, prim: LoadedPrimitive, dist: StoredDistribution, n_points: int) -> Preview:
-        """Mean at n_points phases; std from preview_std_samples trajectories (ONE z each) at
-        preview_std_points phases, interpolated linearly onto the n_points."""
+        """Mean at n_points phases; std at preview_std_points phases (linearized, or from
+        preview_std_samples trajectories with ONE z each), interpolated linearly onto the n_points."""
         x = np.linspace(0.0, 1.0, n_points)
         mean = self._decode(prim, dist, x, dist.eps)
         xs = np.linspace(0.0, 1.0, min(n_points, self.config.preview_std_points))
-        std_s = self._samples(prim, dist, xs, self.config.preview_std_samples, seed=0).std(axis=0)
+        if isinstance(dist, ConditionedLatent) and self.config.preview_std_method == "linearized":
+            _, jac = prim.model.decoder_jacobian(dist.latent.mean, xs)  # (T, d, k)
+            std_s = np.sqrt(((jac * dist.latent.std) ** 2).sum(axis=-1))
+        else:
+            std_s = self._samples(prim, dist, xs, self.config.preview_std_samples, seed=0).std(axis=0)
         std = std_s if xs.size == n_points else np.stack(
             [np.interp(x, xs, std_s[:, j]) for j in range(std_s.shape[1])], axis=1)
         return Preview(prim.joint_names, x, mean, std)
