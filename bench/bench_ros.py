@@ -237,10 +237,21 @@ class Orchestrator:
         return self.c.call(SetPhaseRate, f"{SERVER}/set_phase_rate", SetPhaseRate.Request(phase_rate=rate))
 
     def send(self, handle, duration):
-        fut = self.ac.send_goal_async(self.Execute.Goal(handle=handle, duration=duration))
-        self.c.wait_for(fut.done, 10)
-        gh = fut.result()
-        return gh, gh.get_result_async()
+        """Send a goal; if the server refuses the duration as too fast for the velocity limits
+        (LIMIT_VIOLATION "use a duration >= T s"), send it again with 1.2 T."""
+        for _ in range(2):
+            fut = self.ac.send_goal_async(self.Execute.Goal(handle=handle, duration=duration))
+            self.c.wait_for(fut.done, 10)
+            gh = fut.result()
+            res = gh.get_result_async()
+            self.c.wait_for(res.done, 0.3)
+            if res.done():
+                m = re.search(r"use a duration >= ([\d.e+-]+) s", res.result().result.message)
+                if m:
+                    duration = 1.2 * float(m[1])
+                    continue
+            break
+        return gh, res
 
     def wait(self, res_fut, timeout):
         self.c.wait_for(res_fut.done, timeout)
