@@ -160,6 +160,7 @@ class ExecutionController:
         self.active: _Active | None = None
         self.last_command: np.ndarray | None = None
         self.tracking_error = 0.0
+        self._compared: MeasuredState | None = None
         self.errors = 0          # ticks on which ruckig rejected the input (braked instead)
         self.last_error = ""
 
@@ -215,6 +216,7 @@ class ExecutionController:
             self.buffer.extend([hold] * self.n_ahead)
             self.last_command = q.copy()
         act = _Active(goal, self.dt)
+        self._compared, self.tracking_error = None, 0.0
         q_now = np.asarray(self.streamer.state[0])
         if np.max(np.abs(q_now - act.start_q)) <= self.config.approach_tolerance:
             act.stage = Stage.RUN
@@ -262,15 +264,15 @@ class ExecutionController:
             return None
         s = self.buffer.popleft()
         self.last_command = s.q
-        if measured is not None and s.goal is not None:
-            err = float(np.abs(s.q - measured.q).max())
-            self.tracking_error = err
-            g = s.goal
-            g.max_tracking_error = max(g.max_tracking_error, err)
+        g = s.goal
+        if g is not None:
+            if measured is not None and measured is not self._compared:
+                # a new robot state: compare it with the command due now
+                self._compared = measured
+                self.tracking_error = float(np.abs(s.q - measured.q).max())
+                g.max_tracking_error = max(g.max_tracking_error, self.tracking_error)
             if s.progress is not None:
-                g.progress = s.progress._replace(tracking_error=err)
-        elif s.goal is not None and s.progress is not None:
-            s.goal.progress = s.progress
+                g.progress = s.progress._replace(tracking_error=self.tracking_error)
         self._deliver_now(s.finishes)
         return s
 
