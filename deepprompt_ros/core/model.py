@@ -215,13 +215,3 @@ class DeepProMPNet(nn.Module):
 def gaussian_kl(mu_q, var_q, mu_p, var_p) -> torch.Tensor:
     """KL(N(mu_q, var_q) || N(mu_p, var_p)) summed over the last dim (diagonal Gaussians)."""
     return 0.5 * (torch.log(var_p / var_q) + (var_q + (mu_q - mu_p) ** 2) / var_p - 1.0).sum(-1)
-
-
-def expected_log_ratio(mu_z, var_z, mu_i, var_i) -> torch.Tensor:
-    """E_{z ~ N(mu_z, var_z)}[log N(z | mu_i, var_i) - log N(z | 0, I)], summed over the last dim.
-
-    The per-element term of the paper's rewritten ELBO (Sec. III-B), in closed form.
-    """
-    e_log_qi = -0.5 * (torch.log(2 * math.pi * var_i) + ((mu_z - mu_i) ** 2 + var_z) / var_i)
-    e_log_p0 = -0.5 * (math.log(2 * math.pi) + mu_z ** 2 + var_z)
-    return (e_log_qi - e_log_p0).sum(-1)

@@ -1,0 +1,67 @@
+"""Training: both objectives learn, the CLI writes a self-describing checkpoint, bad configs are refused."""
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from deepprompt_ros.core.checkpoint import load_checkpoint
+from deepprompt_ros.core.dataset import bimodal_sine
+from deepprompt_ros.core.train import TrainConfig, train
+
+
+@pytest.mark.parametrize("objective", ["np", "paper"])
+def test_training_reduces_validation_error(objective):
+    ds = bimodal_sine(60, n_points=50, seed=1)
+    cfg = TrainConfig(objective=objective, steps=240, val_every=60, n_points=50, hidden=64, latent_dim=8,
+                      threads=1, consistency_weight=1.0 if objective == "np" else 0.0)
+    net, norm, hist = train(ds, cfg, log=lambda s: None)
+    first, best = hist[0]["val"]["mean"], min(h["val"]["mean"] for h in hist)
+    assert all(math.isfinite(h["loss"]) and h["kl"] >= 0 for h in hist)
+    assert best < 0.7 * first, (first, best)
+    assert hist[-1]["samples_per_s"] > 0
+
+
+def test_train_cli_writes_checkpoint_with_provenance(tmp_path):
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("steps: 30\nval_every: 15\nhidden: 32\nlatent_dim: 4\nthreads: 1\nn_points: 40\n")
+    out = tmp_path / "m.safetensors"
+    proc = subprocess.run([sys.executable, "-m", "deepprompt_ros.core.train", "--builtin", "bimodal_sine",
+                           "--config", str(cfg), "--out", str(out)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert str(out.resolve()) in proc.stdout
+    summary = json.loads(proc.stdout.strip().splitlines()[-1])
+    ck = load_checkpoint(out)
+    assert ck.joint_names == ("joint_1",) and ck.config.phase_type == "linear"
+    assert ck.config.context_dims == (("mode", 1),)
+    prov = ck.metadata["provenance"]
+    assert prov["dataset"].startswith("bimodal_sine") and prov["n_train"] + prov["n_val"] == 200
+    assert ck.metadata["train_config"]["steps"] == 30
+    assert ck.metadata["metrics"]["best_val_mse_rad2"] == pytest.approx(summary["best_val_mse_rad2"])
+    assert np.all(ck.normalization.y_std > 0)
+
+
+@pytest.mark.parametrize("text, message", [
+    ("steps: -1\n", "steps must be >= 1"),
+    ("lr: fast\n", "'lr' must be float"),
+    ("learning_rate: 0.1\n", "unknown keys"),
+    ("objective: magic\n", "objective must be one of"),
+    ("[1, 2\n", "not valid YAML"),
+])
+def test_bad_training_config_is_refused(tmp_path, text, message):
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text(text)
+    proc = subprocess.run([sys.executable, "-m", "deepprompt_ros.core.train", "--builtin", "bimodal_sine",
+                           "--config", str(cfg), "--out", str(tmp_path / "x.safetensors")],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and message in proc.stderr, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not (tmp_path / "x.safetensors").exists()
+
+
+def test_bad_dataset_folder_is_refused(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "deepprompt_ros.core.train", "--data", str(tmp_path / "none"),
+                           "--out", str(tmp_path / "x.safetensors")], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "does not exist" in proc.stderr and "Traceback" not in proc.stderr
