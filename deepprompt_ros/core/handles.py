@@ -26,11 +26,12 @@ import math
 import secrets
 import threading
 import time
-from typing import Callable, Union
+from typing import TYPE_CHECKING, Callable, Union
 
 import numpy as np
 
-from .primitive import LatentGaussian
+if TYPE_CHECKING:  # torch-free import (the server validates its parameters before loading torch)
+    from .primitive import LatentGaussian
 
 __all__ = [
     "ConditionedLatent",

@@ -18,14 +18,16 @@ import enum
 import math
 import pathlib
 import re
-from typing import Any, Callable, Mapping, NamedTuple, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
 from .handles import (BlendedLatent, ConditionedLatent, HandleLimitError, HandleStore, Schedule,
                       StoredDistribution, UnknownHandleError)
-from .primitive import DeepProMP
 from .streaming import JointLimits, PhaseClock
+
+if TYPE_CHECKING:  # imported where models are loaded: parameters are checked without torch
+    from .primitive import DeepProMP
 
 __all__ = [
     "Code", "RequestError", "ConfigError", "ParamSpec", "ServerConfig", "PARAMETERS",
@@ -416,6 +418,8 @@ class LoadedPrimitive:
 def load_primitive(entry: PrimitiveEntry, robot_joint_names: Sequence[str],
                    resolve: Callable[[str], pathlib.Path]) -> LoadedPrimitive:
     """Load one model and check it against the robot; ValueError/FileNotFoundError say why not."""
+    from .primitive import DeepProMP
+
     path = resolve(entry.model)
     model = DeepProMP.from_checkpoint(str(path), name=entry.name)
     robot = tuple(robot_joint_names)

@@ -52,7 +52,6 @@ from trajectory_msgs.msg import JointTrajectory
 
 from deepprompt_ros import paths
 from deepprompt_ros.core import server_logic as sl
-from deepprompt_ros.core.robots import load_robot
 from deepprompt_ros.ros import conversions as conv
 from deepprompt_ros.ros.stream_loop import (BrakeTail, ExecutionController, ExecutionGoal, StreamLoop,
                                             set_switch_interval, trajectory_points)
@@ -68,6 +67,8 @@ class PrimitiveServer(Node):
         log = self.get_logger()
         self.cfg = cfg = self._read_parameters()
         set_switch_interval(cfg.gil_switch_interval)
+        from deepprompt_ros.core.robots import load_robot  # pinocchio: after the parameters are checked
+
         try:
             self.robot = load_robot(cfg.robot)
         except (ValueError, FileNotFoundError, OSError) as exc:

@@ -23,6 +23,13 @@ the clock held, only when farther than ``approach_tolerance``), RUN (clock runni
 (clock done, converging onto the end state), STOPPING (cancel, stale joint_states, tracking error:
 every joint brakes time-optimally within its limits), then the goal's outcome is delivered when
 its last sample has been published.
+
+Timing: the 'thread' mode paces ticks on absolute time.perf_counter deadlines (no drift). A tick
+that starts more than one period late is not made up with a burst: the deadlines restart from
+now, so on an overloaded machine the motion stretches in time while every sample still keeps the
+limits with respect to the one before it (commands carry the nominal tick time as header.stamp,
+so a consumer can see the gap). The robot state is read from the node's subscription every
+``state_poll`` seconds in this thread (see :class:`StreamLoop`).
 """
 from __future__ import annotations
 
