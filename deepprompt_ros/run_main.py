@@ -22,6 +22,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     env = dict(os.environ)
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    env.setdefault("OPENBLAS_NUM_THREADS", "1")  # small matrices: no BLAS threads competing with the 1 kHz loop
     cfg = config_dir()
     nodes = {
         "sim_bridge": [sys.executable, "-m", "deepprompt_ros.ros.sim_bridge", "--ros-args",
