@@ -443,7 +443,7 @@ class DeepProMP:
     def refine(self, latent: LatentGaussian, via_x, via_y, joint_mask=None, max_iterations: int = 200,
                tol: float = 1e-6, n_samples: int = 16, seed: int = 0, sigma_target: np.ndarray | None = None,
                sigma_iterations: int = 5, max_restarts: int = 5,
-               smoothing_schedule: Sequence[float] = (3.0, 10.0, 30.0, 100.0)) -> RefinementResult:
+               smoothing_schedule: Sequence[float] = (3.0, 10.0, 30.0, 100.0), latent_bound: float = 5.0) -> RefinementResult:
         """Deployment-time refinement of (μ̃, σ̃) (paper Eq. 5 and appendix).
 
         Stage 1 moves μ̃ — starting at the given (posterior) mean — so that the trajectory the robot
@@ -466,6 +466,10 @@ class DeepProMP:
         via_y : array, shape (n, d)
         joint_mask : array of bool, shape (n, d) or (d,), optional; joints to meet (default all)
         sigma_target : array, shape (k,), σ*; default the initial std
+        latent_bound : float
+            μ̃ stays in the box |μ̃_i| ≤ latent_bound (units of the prior's std). The ReLU decoder
+            extrapolates linearly, so almost any target is "reachable" with a huge z — far outside
+            what was demonstrated. Via-points that need more are reported unreachable.
         """
         x = self.check_phases(via_x, "via-point phase")
         if x.size == 0:
@@ -506,7 +510,7 @@ class DeepProMP:
                 if np.abs(g).max() < 1e-15 * max(1.0, cost):
                     return mu, r, it, "stationary (zero gradient)"
                 it += 1
-                step = np.linalg.solve(A + lam * eye, g)
+                step = np.clip(mu + np.linalg.solve(A + lam * eye, g), -latent_bound, latent_bound) - mu
                 r_new, jac_new = residual(mu + step)
                 c_new = float((r_new ** 2).sum())
                 predicted = float(step @ (lam * step + g))  # = cost − ‖r − Jδ‖² (> 0)
@@ -546,7 +550,8 @@ class DeepProMP:
 
         # Restarts (exact LM only) from small seeded perturbations of the best point while the
         # shared iteration budget lasts; the best fit over all runs is kept.
-        mu, r, it, reason = solve_from(np.array(latent.mean, dtype=np.float64), max_iterations)
+        mu, r, it, reason = solve_from(np.clip(latent.mean, -latent_bound, latent_bound).astype(np.float64),
+                                       max_iterations)
         restarts = 0
         while np.abs(r).max() > tol and it < max_iterations and restarts < max_restarts:
             restarts += 1

@@ -1,0 +1,257 @@
+"""Operations of the paper on trained primitives shipped in models/ (seeded, numeric)."""
+import pathlib
+
+import numpy as np
+import pytest
+
+from deepprompt_ros.core.dataset import bimodal_sine, wam_shake
+from deepprompt_ros.core.primitive import DeepProMP, LatentGaussian
+from deepprompt_ros.core.promp import ProMP
+from deepprompt_ros.core.temporal import LinearTimeMap, MonotoneTimeMap, RhythmicTimeMap, evaluate
+
+MODELS = pathlib.Path(__file__).resolve().parents[1] / "models"
+
+
+@pytest.fixture(scope="module")
+def sine():
+    return DeepProMP.from_checkpoint(MODELS / "bimodal_sine.safetensors")
+
+
+@pytest.fixture(scope="module")
+def reach():
+    return DeepProMP.from_checkpoint(MODELS / "gen3_lite_reach.safetensors")
+
+
+@pytest.fixture(scope="module")
+def shake():
+    return DeepProMP.from_checkpoint(MODELS / "wam_shake.safetensors")
+
+
+X = np.linspace(0.0, 1.0, 101)
+
+
+def _modes(samples):
+    """Fractions of sampled trajectories on the + mode, the − mode, and between them (at x = 0.25)."""
+    q = samples[:, 25, 0]
+    return (q > 0.6).mean(), (q < -0.6).mean(), (np.abs(q) < 0.4).mean()
+
+
+# ------------------------------------------------------------------ multimodality (paper Fig. 3)
+def test_distinguishing_via_points_select_the_right_mode(sine):
+    for sign in (1.0, -1.0):
+        lat = sine.condition([0.25], [[sign * 1.0]])
+        pos, neg, _ = _modes(sine.sample(lat, X, 400, rng=0))
+        assert (pos if sign > 0 else neg) >= 0.85, (sign, pos, neg)
+        lat3 = sine.condition([0.1, 0.25, 0.6], [[sign * 0.59], [sign * 1.0], [-sign * 0.59]])
+        pos, neg, _ = _modes(sine.sample(lat3, X, 400, rng=0))
+        assert (pos if sign > 0 else neg) >= 0.95, (sign, pos, neg)
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "open: with via-points on the zero crossings the shipped model puts ~46 % of its samples between "
+    "the modes (ProMP: ~22 %); q(z | uninformative via-points) stays too narrow. See README, Multimodality."))
+def test_zero_crossings_give_both_modes_not_between_and_promp_falls_between(sine):
+    zx, zy = [0.0, 0.5, 1.0], [[0.0], [0.0], [0.0]]
+    lat = sine.condition(zx, zy)
+    pos, neg, gap = _modes(sine.sample(lat, X, 1000, rng=1))
+    assert pos >= 0.2 and neg >= 0.2, (pos, neg, gap)
+    assert gap <= 0.15, (pos, neg, gap)
+    ds = bimodal_sine(200, seed=0)
+    promp = ProMP(1, n_basis=15).fit(np.stack([d.resampled(101) for d in ds.demos]), X)
+    cond = promp.condition(np.array(zx), np.array(zy), noise_var=1e-4)
+    p_pos, p_neg, p_gap = _modes(cond.sample(X, 1000, np.random.default_rng(1)))
+    assert p_gap >= 0.25 and p_gap > 2 * gap, (p_pos, p_neg, p_gap)
+    assert abs(cond.mean_trajectory(X)[25, 0]) < 0.2  # ProMP's mean sits between the modes
+
+
+def test_latent_variance_shrinks_as_via_points_are_added(sine):
+    demo = bimodal_sine(1, seed=7).demos[0]
+    q = demo.resampled(101)
+    idx = [10, 30, 45, 70, 90]
+    vars_ = [sine.condition(X[idx[:n]], q[idx[:n]]).var.sum() for n in range(len(idx) + 1)]
+    assert all(a > b for a, b in zip(vars_, vars_[1:])), vars_
+
+
+# ------------------------------------------------------------------ refinement (paper appendix)
+def test_refinement_meets_reachable_via_points_within_1e6(reach):
+    # Via-point sets with no more equations (points × joints) than latent dimensions, built from
+    # a decoded latent so that they are reachable by construction. Refinement is a local method
+    # on a piecewise-linear decoder: it meets the large majority (measured in make bench), and a
+    # miss is always reported (reachable=False with its residual), never silent.
+    rng = np.random.default_rng(0)
+    met = 0
+    for trial in range(8):
+        z_true = rng.standard_normal(reach.latent_dim)
+        n = 1 + trial % 2
+        xv = np.sort(rng.uniform(0.05, 0.95, n))
+        yv = reach.decode(z_true, xv)
+        post = reach.condition(xv, yv)
+        before = np.abs(reach.mean_trajectory(post, xv) - yv).max()
+        res = reach.refine(post, xv, yv, max_iterations=200, tol=1e-6)
+        after = np.abs(reach.mean_trajectory(res.latent, xv) - yv).max()
+        assert res.iterations <= 200 and before > 1e-4  # the posterior alone misses
+        assert res.max_error == pytest.approx(after, abs=1e-12)  # the reported error is the executed one
+        assert res.reachable == (after <= 1e-6)
+        met += res.reachable
+    assert met >= 6, met
+
+
+def test_overdetermined_reachable_set_is_met_from_a_nearby_start(reach):
+    rng = np.random.default_rng(1)
+    z_true = rng.standard_normal(reach.latent_dim)
+    xv = np.array([0.2, 0.5, 0.8])  # 18 equations > 16 latent dimensions
+    yv = reach.decode(z_true, xv)
+    start = LatentGaussian(z_true + 0.01 * rng.standard_normal(reach.latent_dim), np.full(reach.latent_dim, 0.1))
+    res = reach.refine(start, xv, yv)
+    assert res.reachable and res.max_error <= 1e-6
+
+
+def test_refinement_on_held_out_demo_via_points(sine):
+    demo = bimodal_sine(5, seed=99).demos[3]
+    q = demo.resampled(101)
+    for idx in ([20], [20, 60], [10, 35, 80]):
+        post = sine.condition(X[idx], q[idx])
+        res = sine.refine(post, X[idx], q[idx])
+        assert res.reachable and res.max_error <= 1e-6 and res.iterations <= 200, (idx, res.reason)
+
+
+def test_refinement_with_joint_mask_only_fits_masked_joints(reach):
+    rng = np.random.default_rng(3)
+    xv = np.array([0.3, 0.7])
+    yv = reach.decode(rng.standard_normal(reach.latent_dim), xv)
+    garbage = yv.copy()
+    garbage[:, 3:] += 0.7
+    mask = np.zeros(6, bool)
+    mask[:3] = True
+    res = reach.refine(reach.condition(xv, garbage, via_mask=mask), xv, garbage, joint_mask=mask)
+    achieved = reach.mean_trajectory(res.latent, xv)
+    assert res.reachable and np.abs(achieved[:, :3] - yv[:, :3]).max() <= 1e-6
+    assert np.all(res.errors[:, 3:] == 0.0)
+
+
+def test_unreachable_via_points_return_best_fit_and_residual(sine):
+    xv = np.array([0.25, 0.25])
+    yv = np.array([[1.0], [-1.0]])  # the same phase cannot be at +1 and −1
+    res = sine.refine(sine.condition(xv, yv), xv, yv)
+    assert not res.reachable and res.max_error == pytest.approx(1.0, abs=1e-3)
+    assert "stationary" in res.reason or res.reason == "budget"
+    res2 = sine.refine(sine.prior(), [0.5], [[40.0]])  # far outside anything the primitive can do
+    assert not res2.reachable and res2.max_error > 1.0
+    achieved = sine.mean_trajectory(res2.latent, [0.5])[0, 0]
+    assert res2.max_error == pytest.approx(40.0 - achieved, abs=1e-9)
+
+
+def test_refinement_keeps_sample_cloud_on_via_points(reach):
+    rng = np.random.default_rng(5)
+    xv = np.array([0.2, 0.8])
+    yv = reach.decode(rng.standard_normal(reach.latent_dim), xv)
+    post = reach.condition(xv, yv)
+    res = reach.refine(post, xv, yv, n_samples=32)
+    eps = np.random.default_rng(0).standard_normal((32, reach.latent_dim))
+    before = np.abs(reach.decode(res.latent.mean + eps * post.std, xv).mean(0) - yv).max()
+    assert res.sample_mean_error <= before + 1e-12
+    assert np.all(res.latent.var > 0)
+
+
+# ------------------------------------------------------------------ context conditioning
+def test_context_conditioning_reaches_towards_the_object(reach):
+    from deepprompt_ros.core.reach import reach_demos
+    from deepprompt_ros.core.robots import RobotKinematics, load_robot
+
+    kin = RobotKinematics(load_robot("gen3_lite"))
+    held_out = reach_demos(n_demos=6, seed=777)
+    errs = []
+    for d in held_out.demos:
+        obj = d.contexts["object"][0]
+        lat = reach.condition(X[:1], d.q[:1], contexts={"object": obj})
+        end = reach.mean_trajectory(lat, [1.0])[0]
+        errs.append(np.linalg.norm(kin.forward_kinematics(end).position - (obj + [0, 0, 0.08])))
+    assert np.median(errs) < 0.03, errs
+
+
+# ------------------------------------------------------------------ blending (paper Eq. 4)
+def test_blending_starts_as_first_ends_as_second_and_is_continuous(sine):
+    a = sine.condition([0.25], [[1.0]])
+    b = sine.condition([0.25], [[-1.0]])
+    x = np.linspace(0, 1, 2001)
+    traj = sine.blend(a, b, lambda s: 1.0 - s, x)
+    np.testing.assert_allclose(traj[0], sine.mean_trajectory(a, [0.0])[0], atol=1e-12)
+    np.testing.assert_allclose(traj[-1], sine.mean_trajectory(b, [1.0])[0], atol=1e-12)
+    np.testing.assert_allclose(sine.blend(a, b, np.ones_like(X), X), sine.mean_trajectory(a, X), atol=1e-12)
+    np.testing.assert_allclose(sine.blend(a, b, np.zeros_like(X), X), sine.mean_trajectory(b, X), atol=1e-12)
+    eps = np.random.default_rng(0).standard_normal(sine.latent_dim)
+
+    def max_step(n, fresh_eps=False):
+        s = np.linspace(0, 1, n)
+        z_mean, z_var = sine.blend_latent(a, b, 1.0 - s)
+        e = np.random.default_rng(1).standard_normal((n, sine.latent_dim)) if fresh_eps else eps
+        return np.abs(np.diff(z_mean + e * np.sqrt(z_var), axis=0)).max()
+
+    # one ε per trajectory: z(x) is continuous — its steps shrink with the grid spacing ...
+    assert max_step(4001) < 0.6 * max_step(2001)
+    # ... whereas drawing ε per phase gives jumps of the size of σ whatever the spacing
+    assert max_step(4001, fresh_eps=True) > 10 * max_step(4001)
+    sampled = sine.blend(a, b, lambda s: 1.0 - s, x, eps=eps)
+    step_a = np.abs(np.diff(sine.mean_trajectory(a, x), axis=0)).max()
+    assert np.abs(np.diff(sampled, axis=0)).max() < 3 * step_a
+    with pytest.raises(ValueError, match=r"in \[0, 1\]"):
+        sine.blend(a, b, lambda s: 2 * s, x)
+
+
+# ------------------------------------------------------------------ temporal modulation
+def test_temporal_modulation_linear_monotone_and_reverse(reach):
+    lat = reach.condition(contexts={"object": [0.35, 0.0, 0.08]})
+    f = lambda x: reach.mean_trajectory(lat, x)
+    t_slow, t_fast = np.linspace(0, 4, 81), np.linspace(0, 2, 81)
+    q_slow, v_slow = evaluate(f, LinearTimeMap(4.0), t_slow)
+    q_fast, v_fast = evaluate(f, LinearTimeMap(2.0), t_fast)
+    np.testing.assert_allclose(q_slow, q_fast, atol=1e-12)  # same path
+    np.testing.assert_allclose(v_fast, 2 * v_slow, rtol=1e-6, atol=1e-9)  # twice as fast
+    q_rev, v_rev = evaluate(f, LinearTimeMap(4.0, reverse=True), t_slow)
+    np.testing.assert_allclose(q_rev, q_slow[::-1], atol=1e-12)
+    np.testing.assert_allclose(v_rev, -v_slow[::-1], rtol=1e-5, atol=1e-8)
+    tm = MonotoneTimeMap((0.0, 1.0, 3.0, 4.0), (0.0, 0.1, 0.9, 1.0))
+    t = np.linspace(0, 4, 4001)
+    x = tm.phase(t)
+    assert np.all(np.diff(x) >= 0) and x[0] == 0 and x[-1] == 1
+    np.testing.assert_allclose(tm.phase([1.0, 3.0]), [0.1, 0.9], atol=1e-12)
+    np.testing.assert_allclose(np.gradient(x, t)[1:-1], tm.rate(t)[1:-1], atol=2e-3)
+    with pytest.raises(ValueError, match="monotonically"):
+        MonotoneTimeMap((0.0, 1.0, 2.0), (0.0, 0.6, 0.5))
+    with pytest.raises(ValueError, match="duration"):
+        LinearTimeMap(0.0)
+
+
+# ------------------------------------------------------------------ rhythmic primitives
+def test_rhythmic_cycles_have_no_jump_in_position_or_velocity(shake):
+    lat = shake.prior()
+    f = lambda x: shake.mean_trajectory(lat, x)
+    period, dt = 2.0, 1e-3
+    tm = RhythmicTimeMap(period, cycles=3)
+    t = np.arange(0, 3 * period, dt)
+    q, qd = evaluate(f, tm, t)
+    dq = np.abs(np.diff(q, axis=0))
+    dqd = np.abs(np.diff(qd, axis=0))
+    seams = [int(round(k * period / dt)) - 1 for k in (1, 2)]
+    inner = np.delete(np.arange(len(dq)), seams)
+    for s in seams:  # the step across a seam is no larger than the steps inside a cycle
+        assert np.all(dq[s] <= dq[inner].max(0) + 1e-12)
+        assert np.all(dqd[s] <= dqd[inner].max(0) + 1e-9)
+    np.testing.assert_allclose(f(np.array([0.0]))[0], f(np.array([1.0]))[0], atol=1e-12)
+
+
+def test_rhythmic_primitive_reproduces_demonstrated_cycle(shake):
+    ds = wam_shake(seed=123, n_demos=5)
+    errs = []
+    for d in ds.demos:
+        q = d.resampled(101)
+        lat = shake.condition(X[::20], q[::20])
+        errs.append(np.sqrt(((shake.mean_trajectory(lat, X) - q) ** 2).mean()))
+    assert np.median(errs) < 0.05, errs
+
+
+def test_prior_sample_keeps_z_constant_over_trajectory(sine):
+    lat = LatentGaussian(np.zeros(sine.latent_dim), np.ones(sine.latent_dim))
+    s1 = sine.sample(lat, X, 3, rng=5)
+    z = np.random.default_rng(5).standard_normal((3, sine.latent_dim))
+    np.testing.assert_allclose(s1, sine.decode(z, X), atol=1e-12)
