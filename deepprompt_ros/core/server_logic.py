@@ -150,8 +150,8 @@ class ServerConfig:
     joint_states_topic: str = _param("joint_states", "sensor_msgs/JointState input (measured robot state).")
     controller: str = _param("joint_trajectory_controller", "JointTrajectory output goes to "
                              "'<controller>/joint_trajectory'; '' = no JointTrajectory output.")
-    command_topic: str = _param("joint_command", "trajectory_msgs/JointTrajectoryPoint per control tick "
-                                "(positions, velocities, accelerations in the robot's joint order); '' = off.")
+    command_topic: str = _param("joint_command", "sensor_msgs/JointState per control tick (names, positions, "
+                                "velocities in the robot's joint order; what sim_bridge follows); '' = off.")
     trajectory_rate_hz: float = _param(50.0, "Rate of JointTrajectory messages.", min=1.0, max=1000.0, unit="Hz")
     trajectory_points: int = _param(3, "Points of the look-ahead in each JointTrajectory message (evenly spaced "
                                      "over lookahead_ticks); a braking tail to rest follows them.", min=1, max=100)
