@@ -514,7 +514,7 @@ class DeepProMP:
                 r_new, jac_new = residual(mu + step)
                 c_new = float((r_new ** 2).sum())
                 predicted = float(step @ (lam * step + g))  # = cost − ‖r − Jδ‖² (> 0)
-                rho = (cost - c_new) / max(predicted, 1e-300)
+                rho = min((cost - c_new) / max(predicted, 1e-300), 1.0)  # > 1 only lowers λ by the cap
                 if c_new < cost:
                     mu, r, cost = mu + step, r_new, c_new
                     J = jac_new.reshape(-1, self.latent_dim)
