@@ -30,16 +30,14 @@ node keeps serving.
 from __future__ import annotations
 
 import dataclasses
-import math
 import pathlib
 import sys
 import time
-from typing import Any, NamedTuple
+from typing import Any
 
 import rclpy
 from deepprompt_msgs.msg import ResultCode
 from deepprompt_msgs.srv import StartRecording, StopRecording
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
 from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
@@ -59,23 +57,12 @@ from deepprompt_ros.core.recording import (
     validate_demo_name,
 )
 from deepprompt_ros.ros import conversions as conv
+from deepprompt_ros.ros.parameters import ConfigError, ParamSpec, declare
 
 __all__ = ["DemoRecorder", "PARAMETERS", "main"]
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 JOINT_STATE_TYPE = "sensor_msgs/msg/JointState"
-
-
-class ParamSpec(NamedTuple):
-    """One parameter: name, kind ('str' 'float' 'int' 'bool' 'str[]'), default, description,
-    optional inclusive range."""
-
-    name: str
-    kind: str
-    default: Any
-    description: str
-    lo: float | None = None
-    hi: float | None = None
 
 
 #: Every parameter of the node (the README table is generated from the same list).
@@ -105,46 +92,8 @@ _CHOICES = {"context_pose_fields": ("position", "pose"), "bag_compression": ("zs
             "phase_type": ("linear", "rhythmic")}
 
 
-class ConfigError(ValueError):
-    """A parameter has an invalid value; the node logs it and exits with code 2."""
-
-
 def _declare(node: Node, spec: ParamSpec):
-    """Declare one parameter (read-only, documented) and return its checked value."""
-    desc = ParameterDescriptor(description=spec.description, read_only=True, dynamic_typing=True)
-    if spec.lo is not None and spec.kind == "float":
-        desc.floating_point_range = [FloatingPointRange(from_value=float(spec.lo), to_value=float(spec.hi))]
-    elif spec.lo is not None and spec.kind == "int":
-        desc.integer_range = [IntegerRange(from_value=int(spec.lo), to_value=int(spec.hi), step=1)]
-    default = None if isinstance(spec.default, list) and not spec.default else spec.default
-    try:
-        value = node.declare_parameter(spec.name, default, desc).value
-    except Exception as exc:  # rclpy raises several types for bad overrides
-        raise ConfigError(f"parameter '{spec.name}': {exc}") from None
-    expected = {"str": "a string", "float": "a number", "int": "an integer", "bool": "true or false",
-                "str[]": "a list of strings"}[spec.kind]
-    bad = ConfigError(f"parameter '{spec.name}' = {value!r} is not {expected} ({spec.description})")
-    if spec.kind == "str[]":
-        value = [] if value is None else value
-        if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
-            raise bad
-        return list(value)
-    if spec.kind == "float":
-        if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
-            raise bad
-        value = float(value)
-    elif spec.kind == "int" and (not isinstance(value, int) or isinstance(value, bool)):
-        raise bad
-    elif spec.kind == "bool" and not isinstance(value, bool):
-        raise bad
-    elif spec.kind == "str" and not isinstance(value, str):
-        raise bad
-    if spec.lo is not None and not (spec.lo <= value <= spec.hi):
-        raise ConfigError(f"parameter '{spec.name}' = {value} is outside [{spec.lo}, {spec.hi}] "
-                          f"({spec.description})")
-    if spec.name in _CHOICES and value not in _CHOICES[spec.name]:
-        raise ConfigError(f"parameter '{spec.name}' = {value!r}; expected one of {_CHOICES[spec.name]}")
-    return value
+    return declare(node, spec, choices=_CHOICES.get(spec.name))
 
 
 def _unused(*_args) -> None:

@@ -35,19 +35,17 @@ All PyBullet calls run on one simulation thread, paced with ``time.perf_counter`
 from __future__ import annotations
 
 import concurrent.futures
-import math
 import queue
 import sys
 import threading
 import time
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable
 
 import numpy as np
 import rclpy
 from deepprompt_msgs.msg import ResultCode
 from deepprompt_msgs.srv import SpawnObject
 from geometry_msgs.msg import PointStamped, PoseStamped
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
@@ -56,20 +54,10 @@ from std_srvs.srv import SetBool, Trigger
 
 from deepprompt_ros.core.sim import SHAPES, CameraPose, Simulation
 from deepprompt_ros.ros import conversions as conv
+from deepprompt_ros.ros.parameters import ConfigError, ParamSpec
+from deepprompt_ros.ros.parameters import declare as _declare
 
 __all__ = ["SimBridge", "PARAMETERS", "main"]
-
-
-class ParamSpec(NamedTuple):
-    """One parameter: name, kind ('str' 'float' 'int' 'bool' 'float[]' 'str[]'), default,
-    description, optional inclusive range and allowed values."""
-
-    name: str
-    kind: str
-    default: Any
-    description: str
-    lo: float | None = None
-    hi: float | None = None
 
 
 #: Every parameter of the node (the README table is generated from the same list).
@@ -121,56 +109,6 @@ OBJECT_FIELDS = (
     ParamSpec("mass", "float", 0.1, "kg; 0 = static", 0.0, 1000.0),
     ParamSpec("rgba", "float[]", [], "colour [r, g, b, a] in [0, 1]; empty = default"),
 )
-
-
-class ConfigError(ValueError):
-    """A parameter has an invalid value; the node logs it and exits with code 2."""
-
-
-def _declare(node: Node, spec: ParamSpec, name: str | None = None):
-    """Declare one parameter (read-only, documented) and return its checked value."""
-    name = name or spec.name
-    desc = ParameterDescriptor(description=spec.description, read_only=True, dynamic_typing=True)
-    if spec.lo is not None and spec.kind == "float":
-        desc.floating_point_range = [FloatingPointRange(from_value=float(spec.lo), to_value=float(spec.hi))]
-    elif spec.lo is not None and spec.kind == "int":
-        desc.integer_range = [IntegerRange(from_value=int(spec.lo), to_value=int(spec.hi), step=1)]
-    default = None if isinstance(spec.default, list) and not spec.default else spec.default
-    try:
-        value = node.declare_parameter(name, default, desc).value
-    except Exception as exc:  # rclpy raises several types for bad overrides
-        raise ConfigError(f"parameter '{name}': {exc}") from None
-    expected = {"str": "a string", "float": "a number", "int": "an integer", "bool": "true or false",
-                "float[]": "a list of numbers", "str[]": "a list of strings"}[spec.kind]
-    bad = ConfigError(f"parameter '{name}' = {value!r} is not {expected} ({spec.description})")
-    if spec.kind.endswith("[]"):
-        value = [] if value is None else value
-        if not isinstance(value, (list, tuple)):
-            raise bad
-        if spec.kind == "float[]":
-            if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
-                raise bad
-            value = [float(v) for v in value]
-            if not all(math.isfinite(v) for v in value):
-                raise ConfigError(f"parameter '{name}' = {value} must be finite numbers")
-        elif not all(isinstance(v, str) for v in value):
-            raise bad
-        return list(value)
-    if spec.kind == "float":
-        if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
-            raise bad
-        value = float(value)
-    elif spec.kind == "int":
-        if not isinstance(value, int) or isinstance(value, bool):
-            raise bad
-    elif spec.kind == "bool" and not isinstance(value, bool):
-        raise bad
-    elif spec.kind == "str" and not isinstance(value, str):
-        raise bad
-    if spec.lo is not None and not (spec.lo <= value <= spec.hi):
-        raise ConfigError(f"parameter '{name}' = {value} is outside [{spec.lo}, {spec.hi}] "
-                          f"({spec.description})")
-    return value
 
 
 class SimBridge(Node):
