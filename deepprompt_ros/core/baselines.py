@@ -69,7 +69,7 @@ from .checkpoint import FORMAT as DEEPPROMP_FORMAT
 from .checkpoint import Normalization, load_checkpoint, save_checkpoint
 from .dataset import DemoDataset
 from .model import ImageEncoder, _mlp_trunk, gaussian_kl, phase_features
-from .primitive import DeepProMP, LatentGaussian
+from .primitive import DeepProMP, LatentGaussian, check_phases, joint_list_text
 from .promp import ProMP
 from .train import TensorData, TrainConfig, fit_normalization, sample_subset_weights, to_tensors, train
 
@@ -114,20 +114,11 @@ class InputSpec:
         return len(self.joint_names)
 
     def _joints(self) -> str:
-        j = self.joint_names
-        return ", ".join(j) if len(j) <= 4 else f"{j[0]}..{j[-1]}"
+        return joint_list_text(self.joint_names)
 
     def check_phases(self, x, what: str = "phase") -> np.ndarray:
         """x : (T,) phases in [0, 1]."""
-        x = np.asarray(x, dtype=np.float64)
-        if x.ndim != 1:
-            raise ValueError(f"{what} must be a 1-D array of phases in [0, 1], got shape {x.shape}")
-        if not np.all(np.isfinite(x)):
-            raise ValueError(f"{what} contains NaN or inf; expected finite phases in [0, 1]")
-        if x.size and (x.min() < 0.0 or x.max() > 1.0):
-            bad = x[(x < 0) | (x > 1)][0]
-            raise ValueError(f"{what} {bad:.6g} is outside [0, 1]; phases are normalized time (start=0, end=1)")
-        return x
+        return check_phases(x, what)
 
     def check(self, via_x=None, via_y=None, contexts: Mapping | None = None, images=None) -> Inputs:
         """Validate conditioning inputs; raise ``ValueError`` saying what is expected."""

@@ -20,6 +20,25 @@ from .checkpoint import Checkpoint, Normalization, load_checkpoint
 from .model import DeepProMPNet, phase_features
 
 
+def joint_list_text(names: Sequence[str]) -> str:
+    """'j1, j2, j3' or 'j1..j7' for messages that name a primitive's joints."""
+    return ", ".join(names) if len(names) <= 4 else f"{names[0]}..{names[-1]}"
+
+
+def check_phases(x, what: str = "phase", rhythmic: bool = False) -> np.ndarray:
+    """Validate phases: a finite 1-D array in [0, 1]; returns it as float64, shape (T,)."""
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim != 1:
+        raise ValueError(f"{what} must be a 1-D array of phases in [0, 1], got shape {x.shape}")
+    if not np.all(np.isfinite(x)):
+        raise ValueError(f"{what} contains NaN or inf; expected finite phases in [0, 1]")
+    if x.size and (x.min() < 0.0 or x.max() > 1.0):
+        bad = x[(x < 0) | (x > 1)][0]
+        raise ValueError(f"{what} {bad:.6g} is outside [0, 1]; phases are normalized time "
+                         f"({'fraction of a cycle' if rhythmic else 'start=0, end=1'})")
+    return x
+
+
 @dataclasses.dataclass(frozen=True)
 class LatentGaussian:
     """q(z) = N(mean, diag(var)), the conditioned latent distribution of a primitive.
@@ -151,21 +170,11 @@ class DeepProMP:
         return self.cfg.image_shape
 
     def _joint_list(self) -> str:
-        j = self.joint_names
-        return ", ".join(j) if len(j) <= 4 else f"{j[0]}..{j[-1]}"
+        return joint_list_text(self.joint_names)
 
     # ------------------------------------------------------------------ validation
     def check_phases(self, x, what: str = "phase") -> np.ndarray:
-        x = np.asarray(x, dtype=np.float64)
-        if x.ndim != 1:
-            raise ValueError(f"{what} must be a 1-D array of phases, got shape {x.shape}")
-        if not np.all(np.isfinite(x)):
-            raise ValueError(f"{what} contains NaN or inf; expected finite phases in [0, 1]")
-        if x.size and (x.min() < 0.0 or x.max() > 1.0):
-            bad = x[(x < 0) | (x > 1)][0]
-            raise ValueError(f"{what} {bad:.6g} is outside [0, 1]; phases are normalized time "
-                             f"({'fraction of a cycle' if self.phase_type == 'rhythmic' else 'start=0, end=1'})")
-        return x
+        return check_phases(x, what, rhythmic=self.phase_type == "rhythmic")
 
     def check_positions(self, y, n: int | None = None, what: str = "via-point") -> np.ndarray:
         y = np.asarray(y, dtype=np.float64)
