@@ -19,6 +19,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--robot", default="gen3_lite", help="robot of the sim bridge (gen3_lite | wam | example-robot-data name)")
     ap.add_argument("--real-time-factor", type=float, default=1.0)
+    ap.add_argument("--stale-timeout", type=float, default=1.0,
+                    help="primitive_server stale_timeout (s) for the simulated robot (the server default 0.2 s suits a real arm)")
     args = ap.parse_args(argv)
     env = dict(os.environ)
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -29,7 +31,9 @@ def main(argv=None) -> int:
                        "--params-file", str(cfg / "sim_bridge.yaml"),
                        "-p", f"robot:={args.robot}", "-p", f"real_time_factor:={args.real_time_factor}"],
         "primitive_server": [sys.executable, "-m", "deepprompt_ros.ros.primitive_server", "--ros-args",
-                             "--params-file", str(cfg / "primitive_server.yaml"), "-p", f"robot:={args.robot}"],
+                             "--params-file", str(cfg / "primitive_server.yaml"), "-p", f"robot:={args.robot}",
+                             # the Python simulation can pause for a few hundred ms on a busy machine
+                             "-p", f"stale_timeout:={args.stale_timeout}"],
     }
     procs = {}
     try:
