@@ -17,7 +17,7 @@ __version__ = "0.1.0"
 _EXPORTS = {
     # model, training and operations
     "ModelConfig": "model", "DeepProMPNet": "model", "bayesian_aggregate": "model",
-    "TrainConfig": "train", "train": "train",
+    "TrainConfig": "train",
     "DeepProMP": "primitive", "LatentGaussian": "primitive", "RefinementResult": "primitive",
     "load_checkpoint": "checkpoint", "save_checkpoint": "checkpoint", "CheckpointError": "checkpoint",
     "LinearTimeMap": "temporal", "MonotoneTimeMap": "temporal", "RhythmicTimeMap": "temporal",
