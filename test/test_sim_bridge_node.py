@@ -101,9 +101,11 @@ def test_joint_states_rate_names_and_stamps(sim, client):
     # /clock carries the same simulation time.
     clock = client.subscribe("/clock", Clock, 100)
     assert client.wait_for_messages(clock, 5, 5.0)
-    t_clock = conv.stamp_to_ns(client.latest(clock).clock)
-    t_js = conv.stamp_to_ns(client.latest(client.joint_states).header.stamp)
-    assert abs(t_clock - t_js) < 0.2e9
+    # /clock carries the same simulation time: every clock value lies on the joint_states step grid
+    # (same epoch, whole physics steps later) — independent of how late either message arrives.
+    for m in clock.messages()[:5]:
+        steps = (conv.stamp_to_ns(m.clock) - stamps[0]) / (1e9 / RATE)
+        assert steps >= 0 and abs(steps - round(steps)) < 1e-3, steps
 
 
 def test_command_moves_arm_within_velocity_limit(sim, client):
