@@ -36,6 +36,11 @@ def main(argv=None) -> int:
                              "-p", f"stale_timeout:={args.stale_timeout}"],
     }
     procs = {}
+
+    def _terminate(signum, _frame):  # SIGTERM (e.g. from `timeout` or a supervisor): stop the nodes too
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, _terminate)
     try:
         for name, cmd in nodes.items():
             procs[name] = subprocess.Popen(cmd, env=env, start_new_session=True)
