@@ -68,8 +68,8 @@ from . import __version__
 from .checkpoint import FORMAT as DEEPPROMP_FORMAT
 from .checkpoint import Normalization, load_checkpoint, save_checkpoint
 from .dataset import DemoDataset
-from .model import ImageEncoder, _mlp_trunk, gaussian_kl, phase_features
-from .primitive import DeepProMP, LatentGaussian, check_phases, joint_list_text
+from .model import ImageEncoder, _mlp_trunk, config_from_json, config_to_json, gaussian_kl, phase_features
+from .primitive import DeepProMP, LatentGaussian, check_images, check_phases, joint_list_text
 from .promp import ProMP
 from .train import TensorData, TrainConfig, fit_normalization, sample_subset_weights, to_tensors, train
 
@@ -168,13 +168,7 @@ class InputSpec:
         if images is not None:
             if self.image_shape is None:
                 raise ValueError(f"model '{self.name}' takes no images (it was trained without them)")
-            im = np.asarray(images)
-            h, w = self.image_shape
-            if im.ndim == 3:
-                im = im[None]
-            if im.ndim != 4 or im.shape[1:] != (h, w, 3) or im.dtype != np.uint8 or im.shape[0] < 1:
-                raise ValueError(f"images must be uint8 RGB with shape (n, {h}, {w}, 3), got dtype {im.dtype}, "
-                                 f"shape {im.shape}")
+            im = check_images(images, self.image_shape)
         return Inputs(x, y, ctx, im)
 
     @classmethod
@@ -615,23 +609,11 @@ class ConcatNetConfig:
         return self.via_dim + sum(c for _, c in self.context_dims) + (self.hidden if self.image_shape else 0)
 
     def to_json(self) -> dict:
-        d = dataclasses.asdict(self)
-        d["context_dims"] = [list(c) for c in self.context_dims]
-        d["image_shape"] = list(self.image_shape) if self.image_shape else None
-        return d
+        return config_to_json(self)
 
     @classmethod
     def from_json(cls, d: Mapping) -> "ConcatNetConfig":
-        fields = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(d) - fields
-        if unknown:
-            raise ValueError(f"network config has unknown keys {sorted(unknown)}; expected a subset of "
-                             f"{sorted(fields)}")
-        d = dict(d)
-        d["context_dims"] = tuple((str(n), int(c)) for n, c in d.get("context_dims", ()))
-        if d.get("image_shape") is not None:
-            d["image_shape"] = tuple(int(v) for v in d["image_shape"])
-        return cls(**d)
+        return config_from_json(cls, d, "network config")
 
 
 class ConcatEncoderNet(nn.Module):

@@ -79,22 +79,32 @@ class ModelConfig:
         return tuple(n for n, _ in self.context_dims)
 
     def to_json(self) -> dict:
-        d = dataclasses.asdict(self)
-        d["context_dims"] = [list(c) for c in self.context_dims]
-        d["image_shape"] = list(self.image_shape) if self.image_shape else None
-        return d
+        return config_to_json(self)
 
     @classmethod
     def from_json(cls, d: Mapping) -> "ModelConfig":
-        fields = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(d) - fields
-        if unknown:
-            raise ValueError(f"model config has unknown keys {sorted(unknown)}; expected a subset of {sorted(fields)}")
-        d = dict(d)
-        d["context_dims"] = tuple((str(n), int(c)) for n, c in d.get("context_dims", ()))
-        if d.get("image_shape") is not None:
-            d["image_shape"] = tuple(int(v) for v in d["image_shape"])
-        return cls(**d)
+        return config_from_json(cls, d, "model config")
+
+
+def config_to_json(cfg) -> dict:
+    """A frozen network-config dataclass with ``context_dims`` and ``image_shape`` as JSON types."""
+    d = dataclasses.asdict(cfg)
+    d["context_dims"] = [list(c) for c in cfg.context_dims]
+    d["image_shape"] = list(cfg.image_shape) if cfg.image_shape else None
+    return d
+
+
+def config_from_json(cls, d: Mapping, what: str):
+    """Inverse of :func:`config_to_json`; unknown keys are refused naming ``what``."""
+    fields = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(d) - fields
+    if unknown:
+        raise ValueError(f"{what} has unknown keys {sorted(unknown)}; expected a subset of {sorted(fields)}")
+    d = dict(d)
+    d["context_dims"] = tuple((str(n), int(c)) for n, c in d.get("context_dims", ()))
+    if d.get("image_shape") is not None:
+        d["image_shape"] = tuple(int(v) for v in d["image_shape"])
+    return cls(**d)
 
 
 def phase_features(x, phase_type: str, harmonics: int):

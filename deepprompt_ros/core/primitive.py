@@ -25,6 +25,18 @@ def joint_list_text(names: Sequence[str]) -> str:
     return ", ".join(names) if len(names) <= 4 else f"{names[0]}..{names[-1]}"
 
 
+def check_images(images, image_shape: tuple[int, int]) -> np.ndarray:
+    """Validate the images of one scene: uint8 RGB, shape (n, H, W, 3) or (H, W, 3) → (n, H, W, 3)."""
+    im = np.asarray(images)
+    h, w = image_shape
+    if im.ndim == 3:
+        im = im[None]
+    if im.ndim != 4 or im.shape[1:] != (h, w, 3) or im.dtype != np.uint8 or im.shape[0] < 1:
+        raise ValueError(f"images must be uint8 RGB with shape (n, {h}, {w}, 3), got dtype {im.dtype}, "
+                         f"shape {im.shape}")
+    return im
+
+
 def check_phases(x, what: str = "phase", rhythmic: bool = False) -> np.ndarray:
     """Validate phases: a finite 1-D array in [0, 1]; returns it as float64, shape (T,)."""
     x = np.asarray(x, dtype=np.float64)
@@ -251,13 +263,7 @@ class DeepProMP:
         """q(z | images): images (n, H, W, 3) uint8 of one scene, averaged in embedding space → (1, k)."""
         if self.image_shape is None:
             raise ValueError(f"primitive '{self.name}' takes no images")
-        im = np.asarray(images)
-        h, w = self.image_shape
-        if im.ndim == 3:
-            im = im[None]
-        if im.ndim != 4 or im.shape[1:] != (h, w, 3) or im.dtype != np.uint8 or im.shape[0] < 1:
-            raise ValueError(f"images must be uint8 RGB with shape (n, {h}, {w}, 3), got dtype {im.dtype}, "
-                             f"shape {im.shape}")
+        im = check_images(images, self.image_shape)
         with torch.inference_mode():
             t = torch.from_numpy(np.ascontiguousarray(im)).permute(0, 3, 1, 2).float().unsqueeze(0) / 255.0
             mu, var = self.net.encode_images(t, torch.ones(1, t.shape[1]))
