@@ -106,14 +106,16 @@ class _NumpyMLP:
         lin = [m for m in seq if isinstance(m, torch.nn.Linear)]
         self.W = [m.weight.detach().double().numpy().copy() for m in lin]
         self.b = [m.bias.detach().double().numpy().copy() for m in lin]
+        self.WT = [np.ascontiguousarray(w.T) for w in self.W]  # contiguous (in, out): faster GEMM
         self.relu_last = isinstance(list(seq)[-1], torch.nn.ReLU)
 
     def __call__(self, h: np.ndarray) -> np.ndarray:
         n = len(self.W)
-        for i, (w, b) in enumerate(zip(self.W, self.b)):
-            h = h @ w.T + b
+        for i, (wt, b) in enumerate(zip(self.WT, self.b)):
+            h = h @ wt
+            h += b
             if i < n - 1 or self.relu_last:
-                h = np.maximum(h, 0.0)
+                np.maximum(h, 0.0, out=h)
         return h
 
 
@@ -143,12 +145,20 @@ class DeepProMP:
         self._ctx = {n: _NumpyMLP(m) for n, m in net.context_encoders.items()}
         self._head_W = net.head.weight.detach().double().numpy().copy()
         self._head_b = net.head.bias.detach().double().numpy().copy()
+        self._head_WT = np.ascontiguousarray(self._head_W.T)
         self._dec = _NumpyMLP(net.decoder)
         k = self.cfg.latent_dim
         self._dec_W1z = self._dec.W[0][:, :k]
         self._dec_W1x = self._dec.W[0][:, k:]
         self._y_mean = np.asarray(normalization.y_mean, dtype=np.float64)
         self._y_std = np.asarray(normalization.y_std, dtype=np.float64)
+        # decode() fast path: contiguous transposed weights, the output layer with the
+        # de-normalization folded in, and the phase part of layer 1 cached per phase grid
+        self._W1zT = np.ascontiguousarray(self._dec_W1z.T)
+        self._W2T = np.ascontiguousarray(self._dec.W[1].T)
+        self._W3T = np.ascontiguousarray(self._dec.W[2].T * self._y_std)
+        self._b3 = self._dec.b[2] * self._y_std + self._y_mean
+        self._pre_x_cache: dict[bytes, np.ndarray] = {}
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -228,7 +238,8 @@ class DeepProMP:
 
     # ------------------------------------------------------------------ encoders (numpy)
     def _head(self, feat: np.ndarray):
-        out = feat @ self._head_W.T + self._head_b
+        out = feat @ self._head_WT
+        out += self._head_b
         k = self.latent_dim
         raw = out[..., k:]
         var = np.logaddexp(0.0, raw) + self.cfg.var_floor  # softplus + floor, as in the network
@@ -345,15 +356,32 @@ class DeepProMP:
         array, shape (T, d) or (n, T, d)
         """
         z = np.asarray(z, dtype=np.float64)
-        x = np.asarray(x, dtype=np.float64)
-        pre_x = self._phase_feats(x) @ self._dec_W1x.T + self._dec.b[0]  # (T, h)
+        pre_x = self._layer1_phase(x)  # (T, h)
         if z.ndim == 1:
-            h = np.maximum(pre_x + z @ self._dec_W1z.T, 0.0)
+            h = pre_x + z @ self._W1zT
         else:
-            h = np.maximum(pre_x[None] + (z @ self._dec_W1z.T)[:, None, :], 0.0)
-        h = np.maximum(h @ self._dec.W[1].T + self._dec.b[1], 0.0)
-        out = h @ self._dec.W[2].T + self._dec.b[2]
-        return out * self._y_std + self._y_mean
+            h = pre_x[None] + (z @ self._W1zT)[:, None, :]
+        np.maximum(h, 0.0, out=h)
+        h = h @ self._W2T
+        h += self._dec.b[1]
+        np.maximum(h, 0.0, out=h)
+        out = h @ self._W3T
+        out += self._b3
+        return out
+
+    def _layer1_phase(self, x) -> np.ndarray:
+        """W1x φ(x) + b1 of the decoder's first layer, (T, h); cached per phase grid (a server
+        decodes the same preview / control grid again and again). Read-only: do not modify."""
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        key = x.tobytes()
+        pre = self._pre_x_cache.get(key)
+        if pre is None:
+            pre = self._phase_feats(x) @ self._dec_W1x.T + self._dec.b[0]
+            pre.flags.writeable = False
+            if len(self._pre_x_cache) >= 16:
+                self._pre_x_cache.clear()  # atomic (several server threads decode)
+            self._pre_x_cache[key] = pre
+        return pre
 
     def decode_per_phase(self, z_x: np.ndarray, x: np.ndarray) -> np.ndarray:
         """Decode a latent that varies with phase (blending): z_x (T, k), x (T,) → (T, d)."""
