@@ -15,7 +15,8 @@ from std_srvs.srv import SetBool, Trigger
 
 from deepprompt_ros.core.robots import RobotKinematics, load_robot
 from deepprompt_ros.ros import conversions as conv
-from deepprompt_ros.ros.sim_bridge import OBJECT_FIELDS, PARAMETERS
+from deepprompt_ros.ros.sim_bridge import (OBJECT_FIELDS, PARAMETERS, ClockSerializer, CommandReader,
+                                          StateSerializer)
 from deepprompt_ros.ros.testing import NodeProcess, RosTestClient, isolated_ros_env
 
 CONFIG = pathlib.Path(__file__).resolve().parents[1] / "config" / "sim_bridge.yaml"
@@ -108,6 +109,66 @@ def test_joint_states_rate_names_and_stamps(sim, client):
     for m in clock.messages()[:5]:
         steps = (conv.stamp_to_ns(m.clock) - stamps[0]) / (1e9 / RATE)
         assert steps >= 0 and abs(steps - round(steps)) < 1e-3, steps
+
+
+def test_joint_states_rate_hz_publishes_every_nth_step(env, tmp_path):
+    params = {"rate_hz": RATE, "joint_states_rate_hz": 250.0, "camera.enabled": False, "publish_clock": False}
+    with NodeProcess.start_module("deepprompt_ros.ros.sim_bridge", env, params=params, log_dir=tmp_path,
+                                  name="js250", ros_args=["-r", "__ns:=/js250"]) as proc, \
+            RosTestClient(env, "js250_client") as c:  # own namespace: no second /joint_states or /reset
+        log = c.subscribe("/js250/joint_states", JointState, 1000)
+        assert c.wait_for_messages(log, 1, 30.0), proc.output_tail()
+        n0 = len(log)
+        c.spin_for(1.0)
+        got = log[n0:]
+    stamps = np.array([conv.stamp_to_ns(r.msg.header.stamp) for r in got])
+    np.testing.assert_allclose(np.diff(stamps), 4e9 / RATE, atol=2)  # every 4th step of 1 ms
+    recv = np.array([r.time for r in got])
+    assert 0.25 * 250 < (len(got) - 1) / (recv[-1] - recv[0]) < 1.1 * 250
+    assert "every 4 steps (250 Hz)" in proc.output()
+
+
+def test_serialized_joint_states_clock_and_commands_match_the_messages():
+    """The byte templates of sim_bridge agree with rclpy's serialization, field by field."""
+    from builtin_interfaces.msg import Time
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    rng = np.random.default_rng(3)
+    ser = StateSerializer(SPEC.joint_names)
+    for stamp in (0, 1_795_000_000_123_456_789, 2**31 * 10**9 - 1):
+        q, qd, eff = rng.normal(size=(3, 6))
+        m = deserialize_message(ser(stamp, q, qd, eff), JointState)
+        assert conv.stamp_to_ns(m.header.stamp) == stamp and tuple(m.name) == SPEC.joint_names
+        np.testing.assert_array_equal(m.position, q)
+        np.testing.assert_array_equal(m.velocity, qd)
+        np.testing.assert_array_equal(m.effort, eff)
+    assert conv.stamp_to_ns(deserialize_message(ClockSerializer()(123_000_000_456), Clock).clock) == 123_000_000_456
+
+    read = CommandReader(SPEC.joint_names, SPEC.joints_text())
+    names = SPEC.joint_names
+    order = [3, 0, 5, 1, 4, 2]
+    for k in range(6):  # layouts: robot order, shuffled, shuffled with a frame id, without velocities
+        perm = list(range(6)) if k < 2 else order
+        q, qd = rng.uniform(-1, 1, (2, 6))
+        msg = conv.arrays_to_joint_state([names[i] for i in perm], q[perm], None if k == 5 else qd[perm],
+                                         effort=np.ones(6), stamp_ns=k)
+        if k >= 4:
+            msg.header.frame_id = "base_link_frame"
+        for _ in range(2):  # first the full validation, then the in-place read of the same layout
+            got_q, got_qd = read(serialize_message(msg))
+            np.testing.assert_array_equal(got_q, q)
+            assert got_qd is None if k == 5 else np.array_equal(got_qd, qd)
+    bad = [(JointState(name=list(names), position=[0.0] * 6, velocity=[0.0] * 2), "2 velocity values"),
+           (JointState(name=list(names[:5]) + ["wrist"], position=[0.0] * 6), "expected exactly the 6 joints"),
+           (JointState(name=list(names), position=[0.0] * 5), "5 position values"),
+           (JointState(name=list(names)), "no positions")]
+    for m, text in bad:  # the same names as the cached layout, other counts: refused too
+        with pytest.raises(ValueError, match=text):
+            read(serialize_message(m))
+    with pytest.raises(ValueError, match="not a sensor_msgs/JointState"):
+        read(serialize_message(Time(sec=1)))
+    np.testing.assert_array_equal(read(serialize_message(conv.arrays_to_joint_state(names, np.ones(6))))[0],
+                                  np.ones(6))
 
 
 def test_command_moves_arm_within_velocity_limit(sim, client):
@@ -265,7 +326,8 @@ def test_invalid_parameters_exit_with_clear_message(env, tmp_path):
     cases = [({"robot": "no_such_robot"}, "unknown robot 'no_such_robot'; available: gen3_lite, wam"),
              ({"rate_hz": -5.0}, "rate_hz"),
              ({"camera.width": "wide"}, "camera.width"),
-             ({"initial_positions": [0.0, 0.0]}, "has 2 joint values")]
+             ({"initial_positions": [0.0, 0.0]}, "has 2 joint values"),
+             ({"joint_states_rate_hz": 2000.0}, "joint_states_rate_hz")]
     procs = [NodeProcess.start_module("deepprompt_ros.ros.sim_bridge", env, params=p, log_dir=tmp_path,
                                       name=f"bad{i}") for i, (p, _) in enumerate(cases)]
     try:
