@@ -12,13 +12,16 @@ Metrics (last line: space-separated name=value pairs):
   'object' context, preview 100 points) measured by the client process, which calls every 40 ms
   (25 calls/s) while the stream runs;
 * ``stream_hz`` -- joint_command messages received per second by the subscriber during one long
-  Execute goal;
+  Execute goal (arrival = the instant the subscriber process's DDS layer received the message,
+  see role_subscriber: the Python measuring code neither delays nor loads the stream);
 * ``stream_period_p99_err_ms`` -- p99 over inter-arrival intervals of |interval - dt| (dt = 1 ms);
 * ``stream_missed`` -- intervals longer than 1.5 dt (each is a command that arrived at least half a
   period late or not at all); ``stream_lost`` -- commands never received (gaps in the commands'
   header.stamp, which is the nominal time of the tick: k dt);
 * ``server_period_p99_err_ms``, ``server_missed`` -- the same two figures from the server's own
   publication instants (its log): pacing alone, without transport and subscriber scheduling;
+* ``cpu_<process>_pct`` -- CPU time of each process (user + system, /proc) per wall-clock second
+  while the stream and the Condition client ran, in % of one core (the machine has os.cpu_count());
 * ``limit_violations`` -- over random executions in the sim (random via-points, durations,
   preemptions, cancels, phase-rate changes): commanded samples violating a limit
   (core.streaming.check_limits on the joint_command stream: positions, velocities, and the
@@ -124,39 +127,59 @@ def _wait_file(path: pathlib.Path, ex=None) -> None:
             time.sleep(0.02)
 
 
+SUB_POLL = 0.005  # s between two reads of the subscriber's queues (it records DDS reception times)
+
+
 def role_subscriber(out: str, gate: str, states: bool) -> None:
     """Record joint_command (arrival time, stamp, q, qd) and, if ``states``, joint_states (q),
     between the files <gate>.go and <gate>.stop (messages before are dropped); <gate>.ready once
-    subscribed."""
+    subscribed.
+
+    Cheap measurement: no executor callback per message (in Python that alone costs most of a core
+    at 2 kHz). Messages are taken as serialized bytes every SUB_POLL s from queues deep enough for
+    1 s; the arrival time of each is the instant the DDS layer of this process received it
+    (message info ``received_timestamp``, system clock), not the instant Python got to it. They are
+    decoded after the run.
+    """
+    import rclpy
     from rclpy.qos import QoSProfile
+    from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import JointState
 
-    rclpy, node, ex = _role_node("bench_stream_subscriber")
-    cmd, js = [], []
-    rec = [False]
+    rclpy.init()
+    node = rclpy.create_node("bench_stream_subscriber")
     qos = QoSProfile(depth=1000)
-    perf = time.perf_counter
-
-    def on_cmd(m):
-        if rec[0]:
-            cmd.append((perf(), m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec, tuple(m.position),
-                        tuple(m.velocity)))
-
-    node.create_subscription(JointState, "joint_command", on_cmd, qos)
+    subs = {"cmd": node.create_subscription(JointState, "joint_command", lambda m: None, qos, raw=True)}
     if states:
-        node.create_subscription(JointState, "joint_states", lambda m: rec[0] and js.append(tuple(m.position)), qos)
+        subs["js"] = node.create_subscription(JointState, "joint_states", lambda m: None, qos, raw=True)
+    rec = {k: [] for k in subs}
+
+    def take(keep: bool) -> None:
+        for k, sub in subs.items():
+            with sub.handle:
+                while (m := sub.handle.take_message(sub.msg_type, True)) is not None:
+                    if keep:
+                        rec[k].append((m[1]["received_timestamp"] or time.time_ns(), m[0]))
+
     pathlib.Path(gate + ".ready").write_text("ready")
-    _wait_file(pathlib.Path(gate + ".go"), ex)
-    rec[0] = True
-    stop = pathlib.Path(gate + ".stop")
+    go, stop = pathlib.Path(gate + ".go"), pathlib.Path(gate + ".stop")
+    while not go.exists():
+        take(False)
+        time.sleep(0.02)
     while not stop.exists():
-        ex.spin_once(timeout_sec=0.05)
+        take(True)
+        time.sleep(SUB_POLL)
+    take(True)
+
+    cmd = [deserialize_message(b, JointState) for _, b in rec["cmd"]]
+    js = [deserialize_message(b, JointState).position for _, b in rec.get("js", [])]
 
     def rows(values, width=6):
         return np.array(values, dtype=np.float64).reshape(len(values), width)
 
-    _save(out, t=np.array([c[0] for c in cmd]), stamp=np.array([c[1] for c in cmd], dtype=np.int64),
-          q=rows([c[2] for c in cmd]), qd=rows([c[3] for c in cmd]), js=rows(js))
+    _save(out, t=np.array([t for t, _ in rec["cmd"]], dtype=np.int64) * 1e-9,
+          stamp=np.array([m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in cmd], dtype=np.int64),
+          q=rows([m.position for m in cmd]), qd=rows([m.velocity for m in cmd]), js=rows(js))
     node.destroy_node()
     rclpy.try_shutdown()
 
@@ -262,8 +285,14 @@ class Orchestrator:
         self.c.close()
 
 
+def cpu_seconds(pid: int | str = "self") -> float:
+    """User + system CPU time of a process so far (Linux /proc), in seconds."""
+    fields = pathlib.Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def stream_metrics(data, dt):
-    t, stamp = data["t"], data["stamp"]
+    t, stamp = data["t"] - data["t"][:1], data["stamp"]
     if t.size < 3:
         return dict(stream_hz=0.0, stream_period_p99_err_ms=float("nan"), stream_missed=-1, stream_lost=-1)
     iv = np.diff(t)
@@ -385,8 +414,15 @@ def main(argv=None) -> int:
         go(g_sub)
         gh, res_fut = orch.send(r.handle, stream_s + 1.5)
         orch.c.spin_for(0.5)
+        roles = {"sim_bridge": procs[0], "server": server, "subscriber": sub, "client": cli}
+        cpu0 = {k: cpu_seconds(p.pid) for k, p in roles.items()}
+        cpu0["orchestrator"], w0 = cpu_seconds(), time.monotonic()
         go(g_cli)
         client = _load(tmp / "client.npz", cli, stream_s * 10 + 120)
+        # share of one core used by each process while the stream and the client ran
+        wall = time.monotonic() - w0
+        cpu = {k: (cpu_seconds(p.pid) - cpu0[k]) / wall for k, p in roles.items() if p.running()}
+        cpu["orchestrator"] = (cpu_seconds() - cpu0["orchestrator"]) / wall
         if args.quick:  # enough stream measured: brake now (also exercises cancel)
             gh.cancel_goal_async()
         res = orch.wait(res_fut, stream_s + 30)
@@ -401,7 +437,8 @@ def main(argv=None) -> int:
         rtt = client["rtt"] * 1e3
         metrics.update(srv_p50_ms=float(np.percentile(rtt, 50)), srv_p99_ms=float(np.percentile(rtt, 99)),
                        srv_calls=int(rtt.size), srv_failures=int(client["fails"]),
-                       long_goal_code=int(res.code.value) if res is not None else -1)
+                       long_goal_code=int(res.code.value) if res is not None else -1,
+                       **{f"cpu_{k}_pct": 100 * v for k, v in cpu.items()})
 
         # ---- phase 2: random executions; the subscriber records commands and joint states
         codes = {}
