@@ -1,4 +1,5 @@
 """Training: both objectives learn, the CLI writes a self-describing checkpoint, bad configs are refused."""
+import dataclasses
 import json
 import math
 import subprocess
@@ -65,3 +66,27 @@ def test_bad_dataset_folder_is_refused(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "deepprompt_ros.core.train", "--data", str(tmp_path / "none"),
                            "--out", str(tmp_path / "x.safetensors")], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "does not exist" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_low_information_subsets_come_from_the_phases_where_demos_agree():
+    import torch
+
+    from deepprompt_ros.core.train import fit_normalization, sample_subset_weights, to_tensors
+
+    ds = bimodal_sine(64, n_points=100, seed=3)
+    cfg = TrainConfig(n_points=100, max_via_points=10, p_via_points=1.0, p_empty=0.0, p_context=0.0,
+                      p_low_info=1.0, low_info_fraction=0.2)
+    data = to_tensors(ds, fit_normalization(ds, 100), 100)
+    idx = torch.arange(64)
+    kinds = [("via", slice(0, 100)), ("mode", slice(100, 101))]
+    w_sub, _ = sample_subset_weights(cfg, data, idx, kinds, torch.Generator().manual_seed(0))
+    chosen = np.flatnonzero(w_sub[:, :100].sum(0).numpy())
+    x = np.linspace(0, 1, 100)[chosen]
+    # the 20 % of phases with the least spread across the demos are those around the zero crossings
+    assert np.all(np.min(np.abs(x[:, None] - np.array([0.0, 0.5, 1.0])), 1) < 0.12), x
+    counts = w_sub[:, :100].sum(1).numpy()
+    assert counts.min() >= 1 and counts.max() >= 6  # up to max_via_points, not only single points
+    w_plain, _ = sample_subset_weights(dataclasses.replace(cfg, p_low_info=0.0), data, idx, kinds,
+                                       torch.Generator().manual_seed(0))
+    far = np.min(np.abs(np.linspace(0, 1, 100)[:, None] - np.array([0.0, 0.5, 1.0])), 1) > 0.15
+    assert w_plain[:, :100].numpy()[:, far].sum() > 0  # without it, points fall anywhere

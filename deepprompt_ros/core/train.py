@@ -63,6 +63,8 @@ class TrainConfig:
     p_via_points: float = 0.7
     p_context: float = 0.5
     p_empty: float = 0.1
+    p_low_info: float = 0.0
+    low_info_fraction: float = 0.2
     consistency_weight: float = 0.0
     prior_kl_weight: float = 0.0
     consistency_tol: float = 0.15
@@ -85,8 +87,9 @@ class TrainConfig:
             (self.batch_size >= 1 and self.steps >= 1, "batch_size and steps must be >= 1"),
             (self.n_points >= 2, f"n_points must be >= 2, got {self.n_points}"),
             (0 <= self.max_via_points <= self.n_points, f"max_via_points must be in [0, n_points={self.n_points}]"),
-            (all(0 <= p <= 1 for p in (self.p_via_points, self.p_context, self.p_empty)),
-             "p_via_points, p_context, p_empty must be probabilities in [0, 1]"),
+            (all(0 <= p <= 1 for p in (self.p_via_points, self.p_context, self.p_empty, self.p_low_info)),
+             "p_via_points, p_context, p_empty, p_low_info must be probabilities in [0, 1]"),
+            (0 < self.low_info_fraction <= 1, f"low_info_fraction must be in (0, 1], got {self.low_info_fraction}"),
             (self.val_every >= 1 and self.threads >= 1, "val_every and threads must be >= 1"),
         ]
         for ok, msg in checks:
@@ -214,6 +217,13 @@ def sample_subset_weights(cfg: TrainConfig, data: TensorData, idx: torch.Tensor,
     small counts) of randomly placed points; each context modality / the images: with probability p_context;
     with probability p_empty nothing at all (the prior).
 
+    Low-information subsets (``p_low_info``): that fraction of the via-point subsets is drawn only
+    from the phases where the demonstrations of the batch agree most (the ``low_info_fraction`` of
+    phases with the smallest across-demo spread: shared start points, the zero crossings of the
+    bimodal sines). Such points cannot tell the demonstrations apart, so the NP objective teaches the
+    encoder to give them a large σ²_i — otherwise a few of them aggregate into a narrow posterior
+    that sits between the modes (the failure in README "Multimodality").
+
     Returns
     -------
     w_sub, w_all : (B, N_total)   subset weights and all-elements weights (padding masked).
@@ -229,7 +239,18 @@ def sample_subset_weights(cfg: TrainConfig, data: TensorData, idx: torch.Tensor,
             # sets are where a primitive must stay uncertain, and they are the rare case otherwise
             u = torch.rand(b, generator=gen)
             count = 1 + (u * u * cfg.max_via_points).long().clamp_max(max(cfg.max_via_points - 1, 0))
-            rank = torch.rand(b, t, generator=gen).argsort(1).argsort(1)  # random rank of each point
+            key = torch.rand(b, t, generator=gen)
+            if cfg.p_low_info > 0:
+                spread = data.y[idx].std(0).mean(-1)  # (T,) across-demo spread per phase (normalized units)
+                n_low = max(1, int(round(cfg.low_info_fraction * t)))
+                high = torch.ones(t, dtype=torch.bool)
+                high[spread.argsort()[:n_low]] = False
+                low_rows = torch.rand(b, generator=gen) < cfg.p_low_info
+                key = key + 2.0 * (low_rows.unsqueeze(1) & high.unsqueeze(0)).float()  # informative phases last
+                # uniform counts here: several uninformative points must stay as uninformative as one
+                low_count = 1 + (torch.rand(b, generator=gen) * min(cfg.max_via_points, n_low)).long()
+                count = torch.where(low_rows, low_count.clamp_max(n_low), count)
+            rank = key.argsort(1).argsort(1)  # random rank of each point
             sub = (rank < count.unsqueeze(1)) & use.unsqueeze(1)
             parts_sub.append(sub.float())
             parts_all.append(torch.ones(b, n))
