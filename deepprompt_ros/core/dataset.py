@@ -367,8 +367,21 @@ def gen3_lite_reach(seed: int = 0, **kwargs) -> DemoDataset:
     return reach_demos("gen3_lite", seed=seed, **kwargs)
 
 
+def _task_builtin(name: str):
+    """Lazy entry for a task of :mod:`deepprompt_ros.core.tasks` (which imports this module): its
+    train split, ``make_task(name, seed=seed, **kwargs)``."""
+    def generate(seed: int = 0, **kwargs) -> DemoDataset:
+        from .tasks import make_task
+
+        return make_task(name, seed=seed, **kwargs)
+
+    generate.__doc__ = f"Train split of the PyBullet task '{name}' (see deepprompt_ros.core.tasks)."
+    return generate
+
+
 BUILTIN = {"bimodal_sine": bimodal_sine, "rhythmic_shake": rhythmic_shake, "wam_shake": wam_shake,
-           "gen3_lite_reach": gen3_lite_reach}
+           "gen3_lite_reach": gen3_lite_reach,
+           **{name: _task_builtin(name) for name in ("reach", "close_box", "pour", "kinova_pick_place")}}
 
 
 def builtin_dataset(name: str, **kwargs) -> DemoDataset:
