@@ -11,6 +11,8 @@ Metrics (last line: space-separated name=value pairs):
 * ``srv_p50_ms``, ``srv_p99_ms`` -- Condition round trip (request with 5 via-points and the
   'object' context, preview 100 points) measured by the client process, which calls every 40 ms
   (25 calls/s) while the stream runs;
+* ``srv_handler_p50_ms``, ``srv_handler_p99_ms`` -- time inside the server's Condition callback
+  (its log): the computation, without transport and executor dispatch;
 * ``stream_hz`` -- joint_command messages received per second by the subscriber during one long
   Execute goal (arrival = the instant the subscriber process's DDS layer received the message,
   see role_subscriber: the Python measuring code neither delays nor loads the stream);
@@ -202,32 +204,53 @@ CALL_PERIOD = 0.04  # s between the starts of two Condition calls (25 calls/s, a
 
 def role_client(out: str, gate: str, seconds: float, min_calls: int) -> None:
     """From the file <gate>.go on, call Condition every CALL_PERIOD s (back to back when a call
-    takes longer) for ``seconds`` and at least ``min_calls`` calls; record round trips."""
+    takes longer) for ``seconds`` and at least ``min_calls`` calls; record round trips.
+
+    Round trip: from just before the request is sent to the moment its response has been taken in
+    this process. The client waits on its own rcl wait set (what an rclpy executor does inside, without
+    the executor's per-wake bookkeeping, ~0.3-1 ms of Python on a loaded machine) and sleeps between
+    calls.
+    """
     from deepprompt_msgs.srv import Condition
+    from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 
     from deepprompt_ros.core.robots import load_robot
 
     rclpy, node, ex = _role_node("bench_condition_client")
     cli = node.create_client(Condition, f"{SERVER}/condition")
     cli.wait_for_service(timeout_sec=60)
+    ex.remove_node(node)  # from here on the client's wait set below is the only waiter
     home = load_robot("gen3_lite").home
+    wait_set = _rclpy.WaitSet(0, 0, 0, 1, 0, 0, node.context.handle)  # subs, guards, timers, clients, ...
+
+    def call(req, timeout: float = 30.0):
+        with cli.handle:
+            seq = cli.handle.send_request(req)
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            with cli.handle, node.context.handle:
+                wait_set.clear_entities()
+                wait_set.add_client(cli.handle)
+                wait_set.wait(int(0.1 * 1e9))
+                header, response = cli.handle.take_response(Condition.Response)
+            if header is not None and header.request_id.sequence_number == seq:
+                return response
+        raise TimeoutError(f"no Condition response within {timeout} s")
+
     pathlib.Path(gate + ".ready").write_text("ready")
-    _wait_file(pathlib.Path(gate + ".go"), ex)
+    _wait_file(pathlib.Path(gate + ".go"))
     rng = np.random.default_rng(1)
     rtt, fails = [], 0
     end = time.monotonic() + seconds
     next_call = time.monotonic()
     while time.monotonic() < end or len(rtt) < min_calls:
         req = _condition_request(rng, home)
-        while time.monotonic() < next_call:
-            ex.spin_once(timeout_sec=max(0.0, min(0.01, next_call - time.monotonic())))
+        time.sleep(max(0.0, next_call - time.monotonic()))
         next_call += CALL_PERIOD
         t0 = time.perf_counter()
-        fut = cli.call_async(req)
-        while not fut.done():
-            ex.spin_once(timeout_sec=0.01)
+        res = call(req)
         rtt.append(time.perf_counter() - t0)
-        fails += not fut.result().success
+        fails += not res.success
     _save(out, rtt=np.array(rtt), fails=fails)
     node.destroy_node()
     rclpy.try_shutdown()
@@ -434,6 +457,10 @@ def main(argv=None) -> int:
                            server.output())
         if found:
             metrics.update(server_period_p99_err_ms=float(found[-1][1]), server_missed=int(found[-1][2]))
+        # time inside the server's Condition callback (the rest of a round trip: transport, executors)
+        found = re.findall(r"condition handled in p50 ([\d.]+) ms, p99 ([\d.]+) ms", server.output())
+        if found:
+            metrics.update(srv_handler_p50_ms=float(found[-1][0]), srv_handler_p99_ms=float(found[-1][1]))
         rtt = client["rtt"] * 1e3
         metrics.update(srv_p50_ms=float(np.percentile(rtt, 50)), srv_p99_ms=float(np.percentile(rtt, 99)),
                        srv_calls=int(rtt.size), srv_failures=int(client["fails"]),
