@@ -129,7 +129,7 @@ def _wait_file(path: pathlib.Path, ex=None) -> None:
             time.sleep(0.02)
 
 
-SUB_POLL = 0.005  # s between two reads of the subscriber's queues (it records DDS reception times)
+SUB_POLL = 0.02  # s between two reads of the subscriber's queues (it records DDS reception times)
 
 
 def role_subscriber(out: str, gate: str, states: bool) -> None:
@@ -363,6 +363,8 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="a few seconds instead of ~2 minutes")
     ap.add_argument("--loop-mode", default="thread", choices=("thread", "timer"))
     ap.add_argument("--param", action="append", default=[], help="extra primitive_server parameter name:=value")
+    ap.add_argument("--sim-param", action="append", default=[],
+                    help="extra sim_bridge parameter name:=value (e.g. joint_states_rate_hz:=250)")
     ap.add_argument("--model", help="model file to serve as 'reach' (6 Gen3 lite joints, context 'object'); "
                     "default: models/gen3_lite_reach.safetensors, else a tiny model trained here")
     ap.add_argument("--role", choices=("subscriber", "client"), help=argparse.SUPPRESS)
@@ -383,6 +385,7 @@ def main(argv=None) -> int:
     from deepprompt_ros.core.server_logic import ServerConfig, robot_limits
     from deepprompt_ros.ros.testing import NodeProcess, isolated_ros_env
 
+    load_before = os.getloadavg()[0]  # other work on the machine (this benchmark adds ~1 when it runs)
     stream_s, calls, n_exec = (2.0, 20, 0) if args.quick else (40.0, 1000, 30)
     tmp = pathlib.Path(tempfile.mkdtemp(prefix="bench_ros_"))
     env = isolated_ros_env(tmp / "log")
@@ -393,8 +396,9 @@ def main(argv=None) -> int:
     t_start = time.monotonic()
     try:
         prim_file = primitives_file(tmp, args.model, 100 if args.quick else 300)
+        sim_ros_args = [a for p in args.sim_param for a in ("-p", p)]
         procs.append(NodeProcess.start_module("deepprompt_ros.ros.sim_bridge", env, params={
-            "camera.enabled": False, "publish_clock": False}))
+            "camera.enabled": False, "publish_clock": False}, ros_args=sim_ros_args))
         # stale_timeout 1 s: on a loaded machine the Python sim pauses; this benchmark measures the stream
         ros_args = ["-p", f"primitives_file:={prim_file}", "-p", f"loop_mode:={args.loop_mode}",
                     "-p", "stale_timeout:=1.0"]
@@ -515,7 +519,9 @@ def main(argv=None) -> int:
     metrics["wall_s"] = time.monotonic() - t_start
 
     print(f"primitive_server benchmark ({'quick' if args.quick else 'full'}, loop_mode={args.loop_mode}, "
-          f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs)")
+          f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs; 1-min load average before the "
+          f"start {load_before:.2f}" + "".join(f", server {p}" for p in args.param)
+          + "".join(f", sim_bridge {p}" for p in args.sim_param) + ")")
     print(f"{'metric':34s} value")
     for k, v in metrics.items():
         print(f"{k:34s} {v:.4g}" if isinstance(v, float) else f"{k:34s} {v}")

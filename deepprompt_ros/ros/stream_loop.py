@@ -115,9 +115,16 @@ class ExecutionGoal:
         self.goal_id = goal_id
         self.done = threading.Event()
         self.outcome: Outcome | None = None
-        self.progress = Progress(plan.start_phase, 0, 0.0, 0.0)
+        self._progress = Progress(plan.start_phase, 0, 0.0, 0.0)  # of the sample published last
+        self._tracking_error = 0.0                                # at that sample
         self.stage = Stage.APPROACH
         self.max_tracking_error = 0.0
+
+    @property
+    def progress(self) -> Progress:
+        """Phase, cycle, phase rate and tracking error of the sample published last."""
+        p, e = self._progress, self._tracking_error  # (may pair a sample with its predecessor's error)
+        return p if p.tracking_error == e else p._replace(tracking_error=e)
 
     def _finish(self, outcome: Outcome) -> None:
         if self.outcome is None:
@@ -138,6 +145,11 @@ class _Active:
         self.settle_ticks = 0
         self.error_ticks = 0
         self.start_q = self.plan.reference.state(self.plan.start_phase, 0.0, 0.0)[0]
+
+    def reference(self, ahead: float):
+        """(q, q̇, q̈) of the reference ``ahead`` seconds after the clock's current tick."""
+        p = self.clock.peek(ahead)
+        return self.plan.reference.state(p.x, p.x_dot, p.x_ddot)
 
 
 class ExecutionController:
@@ -278,9 +290,10 @@ class ExecutionController:
                 self._compared = measured
                 self.tracking_error = float(np.abs(s.q - measured.q).max())
                 g.max_tracking_error = max(g.max_tracking_error, self.tracking_error)
-            if s.progress is not None:
-                g.progress = s.progress._replace(tracking_error=self.tracking_error)
-        self._deliver_now(s.finishes)
+            if s.progress is not None:  # (the tuple is completed with the tracking error when read)
+                g._progress, g._tracking_error = s.progress, self.tracking_error
+        if s.finishes:
+            self._deliver_now(s.finishes)
         return s
 
     def check_faults(self, measured: MeasuredState | None, now: float) -> None:
@@ -304,7 +317,6 @@ class ExecutionController:
         a = self.active
         if a is None:
             return
-        ref = a.plan.reference
         clock = a.clock
         finishes = []
         if a.stage == Stage.APPROACH:
@@ -312,10 +324,7 @@ class ExecutionController:
             if st.status == StreamStatus.REACHED:
                 a.stage = a.goal.stage = Stage.RUN
         else:
-            def reference(ahead, clock=clock, ref=ref):
-                p = clock.peek(ahead)
-                return ref.state(p.x, p.x_dot, p.x_ddot)
-            st = self.streamer.track(reference)
+            st = self.streamer.track(a.reference)
             if a.stage == Stage.RUN:
                 clock.tick()
                 if clock.done:
@@ -428,8 +437,6 @@ class StreamLoop:
     #: seconds between two reads of the robot state while streaming (taking a JointState message
     #: costs ~0.1 ms in Python: every tick would be a tenth of a 1 kHz period)
     state_poll = 0.01
-    #: samples computed per refill of the look-ahead buffer
-    compute_batch = 1
 
     def __init__(self, controller: ExecutionController, config: ServerConfig,
                  publish_command: Callable | None = None, publish_trajectory: Callable | None = None,
@@ -515,11 +522,7 @@ class StreamLoop:
             elif cmd[0] == "rate":
                 ctl.set_rate(cmd[1], cmd[2])
         ctl.check_faults(measured, now)
-        if len(ctl.buffer) < ctl.n_ahead:  # refill: compute_batch samples at once (see the class doc)
-            for _ in range(self.compute_batch):
-                ctl.compute_next()
-                if ctl.active is None:
-                    break
+        ctl.compute_next()
         self.stats.ticks += 1
         if self._pub_traj is not None and self.stats.ticks % self._traj_every == 0 and ctl.buffer:
             snap = ctl.snapshot(time.perf_counter() + self.dt if next_due is None else next_due,
