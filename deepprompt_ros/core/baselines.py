@@ -71,7 +71,7 @@ from .dataset import DemoDataset
 from .model import ImageEncoder, _mlp_trunk, config_from_json, config_to_json, gaussian_kl, phase_features
 from .primitive import DeepProMP, LatentGaussian, check_images, check_phases, joint_list_text
 from .promp import ProMP
-from .train import TensorData, TrainConfig, fit_normalization, sample_subset_weights, to_tensors, train
+from .train import TensorData, TrainConfig, fit_normalization, sample_subset_weights, to_tensors, train, validation_weights
 
 __all__ = [
     "MovementPrimitiveModel", "DeepProMPModel", "ProMPModel", "CNMP", "CNMPIndep", "VAECNMP", "VAECNMPIndep",
@@ -786,25 +786,11 @@ class _ConcatBaseline(MovementPrimitiveModel):
         zero-padded), ``context`` (all contexts and images, no via-point), ``both``; ``mean`` of those."""
         net = self.net.eval()
         kinds = _kinds(data)
-        b, t = data.y.shape[:2]
-        idx = torch.arange(b)
-        gen = torch.Generator().manual_seed(12345)
-        rank = torch.rand(b, t, generator=gen).argsort(1).argsort(1)
-        via = (rank < cfg.val_via_points).float()
-        parts = {"via": [], "context": [], "both": []}
-        for kind, sl in kinds:
-            n = sl.stop - sl.start
-            if kind == "via":
-                parts["via"].append(via), parts["both"].append(via), parts["context"].append(torch.zeros(b, n))
-            else:
-                m = data.image_mask.amax(1, keepdim=True) if kind == "image" else data.ctx_mask[kind]
-                parts["via"].append(torch.zeros(b, n)), parts["context"].append(m), parts["both"].append(m)
+        idx = torch.arange(data.y.shape[0])
         scale = torch.tensor(self.norm.y_std, dtype=torch.float32)
         out = {}
-        for name, p in parts.items():
-            if name != "via" and len(kinds) == 1:
-                continue
-            inp, mask = _batch_elements(net, data, idx, torch.cat(p, 1), kinds)
+        for name, w in validation_weights(cfg, data, kinds).items():
+            inp, mask = _batch_elements(net, data, idx, w, kinds)
             z, _ = net.encode(inp, mask)
             mean, _ = net.decode(z, data.x)
             out[name] = float((((mean - data.y) * scale) ** 2).mean())

@@ -335,19 +335,14 @@ def loss_fn(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, idx, gen, bet
     return loss.mean(), nll.mean().item(), kl.mean().item(), cons.mean().item()
 
 
-@torch.no_grad()
-def validation_mse(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, norm: Normalization) -> dict:
-    """Held-out reconstruction MSE (rad²), decoding at the posterior mean, for fixed (seeded)
-    conditionings: ``via`` (val_via_points random points), ``context`` (all contexts, if any),
-    ``both``; ``mean`` averages the available ones."""
-    net.eval()
-    idx = torch.arange(data.y.shape[0])
-    mu, var, kinds = encode_all(net, data, idx)
-    gen = torch.Generator().manual_seed(12345)
+def validation_weights(cfg: TrainConfig, data: TensorData, kinds) -> dict:
+    """The fixed (seeded) conditionings of the validation MSE, as element weights (B, N_total):
+    ``via`` (val_via_points random points per demo), and — when there are contexts or images —
+    ``context`` (all of them, no via-point) and ``both``."""
     b, t = data.y.shape[:2]
+    gen = torch.Generator().manual_seed(12345)
     rank = torch.rand(b, t, generator=gen).argsort(1).argsort(1)
     via = (rank < cfg.val_via_points).float()
-    has_ctx = len(kinds) > 1
     weights = {"via": [], "context": [], "both": []}
     for kind, sl in kinds:
         n = sl.stop - sl.start
@@ -356,12 +351,19 @@ def validation_mse(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, norm: 
         else:
             mask = data.image_mask.amax(1, keepdim=True) if kind == "image" else data.ctx_mask[kind]
             weights["via"].append(torch.zeros(b, n)), weights["context"].append(mask), weights["both"].append(mask)
+    return {name: torch.cat(parts, 1) for name, parts in weights.items() if name == "via" or len(kinds) > 1}
+
+
+@torch.no_grad()
+def validation_mse(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, norm: Normalization) -> dict:
+    """Held-out reconstruction MSE (rad²), decoding at the posterior mean, for the conditionings of
+    :func:`validation_weights`; ``mean`` averages the available ones."""
+    net.eval()
+    mu, var, kinds = encode_all(net, data, torch.arange(data.y.shape[0]))
     scale = torch.tensor(norm.y_std, dtype=torch.float32)
     out = {}
-    for name, parts in weights.items():
-        if name != "via" and not has_ctx:
-            continue
-        mu_z, _ = bayesian_aggregate(mu, var, torch.cat(parts, 1))
+    for name, w in validation_weights(cfg, data, kinds).items():
+        mu_z, _ = bayesian_aggregate(mu, var, w)
         err = (net.decode(mu_z, data.x) - data.y) * scale
         out[name] = float((err ** 2).mean())
     out["mean"] = float(np.mean(list(out.values())))
