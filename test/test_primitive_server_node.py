@@ -380,6 +380,25 @@ def test_stale_joint_states_stop_the_stream(setup):
     assert r.success
 
 
+def test_trajectory_bytes_equal_the_built_message():
+    """The JointTrajectory template writer gives the message conversions.joint_trajectory builds
+    (every point count, stamps up to 2**31 s, times with ns resolution); bad times are refused."""
+    from rclpy.serialization import deserialize_message
+
+    from deepprompt_ros.ros.primitive_server import TrajectorySerializer
+
+    ser = TrajectorySerializer(SPEC.joint_names)
+    rng = np.random.default_rng(4)
+    for n_points in (0, 1, 3, 6, 9, 3):  # the last one from the cached template
+        times = np.cumsum(rng.uniform(1e-9, 2.5, n_points))
+        q, qd, qdd = rng.normal(size=(3, n_points, 6))
+        stamp = int(rng.integers(0, 2**31 * 10**9))
+        got = deserialize_message(ser(times, q, qd, qdd, stamp_ns=stamp), JointTrajectory)
+        assert got == conv.joint_trajectory(SPEC.joint_names, times, q, qd, qdd, stamp_ns=stamp), n_points
+    with pytest.raises(ValueError, match="strictly increasing"):
+        ser(np.array([0.1, 0.1]), *np.zeros((3, 2, 6)))
+
+
 def test_benchmark_quick_mode_runs_and_reports_every_metric(setup):
     """Smoke run of bench/bench_ros.py --quick (its own processes, the model trained above)."""
     import subprocess
