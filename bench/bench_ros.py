@@ -24,6 +24,8 @@ Metrics (last line: space-separated name=value pairs):
   publication instants (its log): pacing alone, without transport and subscriber scheduling;
 * ``cpu_<process>_pct`` -- CPU time of each process (user + system, /proc) per wall-clock second
   while the stream and the Condition client ran, in % of one core (the machine has os.cpu_count());
+* ``server_gc_count``, ``server_gc_max_ms`` -- cyclic garbage collections in the server and the
+  longest (each holds the interpreter lock);
 * ``limit_violations`` -- over random executions in the sim (random via-points, durations,
   preemptions, cancels, phase-rate changes): commanded samples violating a limit
   (core.streaming.check_limits on the joint_command stream: positions, velocities, and the
@@ -465,6 +467,9 @@ def main(argv=None) -> int:
         found = re.findall(r"condition handled in p50 ([\d.]+) ms, p99 ([\d.]+) ms", server.output())
         if found:
             metrics.update(srv_handler_p50_ms=float(found[-1][0]), srv_handler_p99_ms=float(found[-1][1]))
+        found = re.findall(r"(\d+) garbage collections .*?, ([\d.]+) ms in total, longest ([\d.]+) ms", server.output())
+        if found:  # in the server process since its start-up objects were frozen
+            metrics.update(server_gc_count=int(found[-1][0]), server_gc_max_ms=float(found[-1][2]))
         rtt = client["rtt"] * 1e3
         metrics.update(srv_p50_ms=float(np.percentile(rtt, 50)), srv_p99_ms=float(np.percentile(rtt, 99)),
                        srv_calls=int(rtt.size), srv_failures=int(client["fails"]),

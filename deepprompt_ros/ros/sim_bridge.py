@@ -46,6 +46,7 @@ on an idle core).
 from __future__ import annotations
 
 import concurrent.futures
+import gc
 import queue
 import struct
 import sys
@@ -559,6 +560,11 @@ def main(args=None) -> int:
     code = 0
     try:
         node = SimBridge()
+        # Start-up objects (pybullet, pinocchio, rclpy: ~43 000) to the permanent generation: a full
+        # garbage collection over them took ~50 ms here, holding the interpreter lock (a stalled
+        # simulation thread); later collections only scan what was allocated since.
+        gc.collect()
+        gc.freeze()
         node.start()
         rclpy.spin(node)
     except ConfigError as exc:
