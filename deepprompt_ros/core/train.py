@@ -433,7 +433,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="train", description="Train a DeepProMP on demonstrations.")
     src = ap.add_mutually_exclusive_group(required=True)
     src.add_argument("--data", help="dataset folder of .npz/.csv demonstrations (see deepprompt_ros.core.dataset)")
-    src.add_argument("--builtin", help="built-in generated dataset: bimodal_sine | rhythmic_shake | wam_shake | gen3_lite_reach")
+    src.add_argument("--builtin", help="built-in generated dataset: bimodal_sine | rhythmic_shake | wam_shake | "
+                     "gen3_lite_reach, or a PyBullet task (core.tasks; full sets take minutes to generate): "
+                     "reach | close_box | pour | kinova_pick_place")
     ap.add_argument("--config", help="training YAML (keys of TrainConfig); defaults if omitted")
     ap.add_argument("--out", required=True, help="output checkpoint path (.safetensors)")
     ap.add_argument("--steps", type=int, help="override the number of updates")
