@@ -16,6 +16,11 @@ Interfaces (``~`` = the node's name, ``/primitive_server`` by default):
   rest) and ``joint_command`` (sensor_msgs/JointState, one per control tick: names = the robot's
   joints, position + velocity; what sim_bridge consumes).
 
+Threads: ``control_loop`` (the command stream, see ros.stream_loop), ``jtc_publisher``
+(JointTrajectory messages), ``services`` (waits on the five service handles and answers each request
+itself) and the executor's (action, parameters). Start-up objects are frozen out of the garbage
+collector (``gc.freeze``): a full collection over them stalled every thread for 50-220 ms.
+
 Start-up: invalid parameters or no servable primitive -> a log line per problem and exit code 2.
 Primitives that cannot be served (missing file, joints that are not the robot's, corrupt model)
 are refused one by one with a log line; the server starts with the others.
@@ -182,8 +187,8 @@ class PrimitiveServer(Node):
                          for name in ("condition", "blend", "sample", "list_primitives", "set_phase_rate")}
         # time from a request's reception by DDS to its handling (any service), latest 4096
         self._queued: collections.deque = collections.deque(maxlen=4096)
-        # The services live on a helper node that no executor spins; one thread (start_service_thread)
-        # waits on their five handles, takes a request, answers it and sends the response. The node's
+        # The services live on a helper node that no executor spins; one thread (_serve) waits on
+        # their five handles, takes a request, answers it and sends the response. The node's
         # multi-threaded executor (action, parameters) cost ~1 ms more CPU per call in Python on a loaded
         # 2-core machine (a wait set rebuilt over every entity of the node, a hand-over to a pool
         # thread). Names stay ~/<service> of this node.
@@ -197,7 +202,6 @@ class PrimitiveServer(Node):
                                                 (SetPhaseRate, "set_phase_rate", self._set_rate))]
         self._srv_wake = GuardCondition(None, None, context=self.context)
         self._srv_stop = threading.Event()
-        self._srv_thread: threading.Thread | None = None
         self._action = ActionServer(self, Execute, "~/execute", self._execute, callback_group=ReentrantCallbackGroup(),
                                     goal_callback=lambda goal: GoalResponse.ACCEPT,
                                     cancel_callback=lambda goal: CancelResponse.ACCEPT)
@@ -205,6 +209,8 @@ class PrimitiveServer(Node):
             self.create_timer(1.0 / rate, self.loop.timer_tick, callback_group=MutuallyExclusiveCallbackGroup())
         self.gc = GcMonitor()
         self.loop.start(threaded=cfg.loop_mode == "thread")
+        self._srv_thread = threading.Thread(target=self._serve, name="services", daemon=True)
+        self._srv_thread.start()
         if self.loop.priority_error:
             log.warn(self.loop.priority_error)
         log.info(f"serving {len(prims)} primitive(s) [{', '.join(sorted(prims))}] for robot '{self.robot.name}' "
@@ -328,7 +334,8 @@ class PrimitiveServer(Node):
     def handling_summary(self, name: str = "condition") -> str:
         """'<name> handled in p50 / p99 ms over n calls' (time inside the callback, latest 4096 calls)
         and the time requests waited between their reception and their handling."""
-        t, q = np.array(self._handled[name]) * 1e3, np.array(self._queued) * 1e3
+        # deque.copy() is atomic under the interpreter lock (the service thread appends meanwhile)
+        t, q = np.array(self._handled[name].copy()) * 1e3, np.array(self._queued.copy()) * 1e3
         if t.size == 0:
             return f"no {name} calls yet"
         return (f"{name} handled in p50 {np.percentile(t, 50):.3f} ms, p99 {np.percentile(t, 99):.3f} ms "
@@ -421,11 +428,6 @@ class PrimitiveServer(Node):
             self.get_logger().warn(f"execute: could not set the goal state: {exc}")
         return result
 
-    def start_service_thread(self) -> None:
-        """Serve the services from their own thread (see __init__)."""
-        self._srv_thread = threading.Thread(target=self._serve, name="services", daemon=True)
-        self._srv_thread.start()
-
     def _serve(self) -> None:
         """Service thread: wait on the service handles, answer each request in turn."""
         name_os_thread("services")
@@ -448,21 +450,24 @@ class PrimitiveServer(Node):
             for srv in services:
                 if srv.handle.pointer not in ready:
                     continue
-                with srv.handle:
-                    request, header = srv.handle.service_take_request(srv.srv_type.Request)
-                if header is None:
-                    continue
-                if header.received_timestamp:  # DDS reception -> taken here
-                    self._queued.append(max(time.time_ns() - header.received_timestamp, 0) * 1e-9)
-                srv.send_response(srv.callback(request, srv.srv_type.Response()), header)
+                try:
+                    with srv.handle:
+                        request, header = srv.handle.service_take_request(srv.srv_type.Request)
+                    if header is None:
+                        continue
+                    if header.received_timestamp:  # DDS reception -> taken here
+                        self._queued.append(max(time.time_ns() - header.received_timestamp, 0) * 1e-9)
+                    srv.send_response(srv.callback(request, srv.srv_type.Response()), header)
+                except Exception as exc:  # e.g. the client went away; the thread keeps serving
+                    self.get_logger().warn(f"service {srv.srv_name}: {type(exc).__name__}: {exc}",
+                                           throttle_duration_sec=1.0)
 
     def shutdown(self) -> None:
         if self._handled["condition"]:
             self.get_logger().info(self.handling_summary())
         self._srv_stop.set()
         self._srv_wake.trigger()
-        if self._srv_thread is not None:
-            self._srv_thread.join(2.0)
+        self._srv_thread.join(2.0)
         self.loop.shutdown()
         self._srv_node.destroy_node()
         self._state_node.destroy_node()
@@ -477,7 +482,6 @@ def main(args=None) -> int:
         n = freeze_startup_objects()  # no collection scans them again (a full one took 50-220 ms)
         node.gc.reset()
         node.get_logger().info(f"{n} start-up objects frozen (gc.freeze)")
-        node.start_service_thread()
         executor = MultiThreadedExecutor(num_threads=6)
         executor.add_node(node)
         executor.spin()

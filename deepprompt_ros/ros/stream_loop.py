@@ -644,7 +644,7 @@ class GcMonitor:
     A collection holds the interpreter lock: a full one over a node's start-up objects (torch,
     numpy, rclpy, the models: ~190 000 objects in primitive_server) took 50-220 ms here, a stall of
     every thread. Nodes therefore call ``gc.freeze()`` once started (:func:`freeze_startup_objects`),
-    after which collections only scan what was allocated since (well under 1 ms).
+    after which collections only scan what was allocated since (~1 ms at most here).
     """
 
     def __init__(self):
