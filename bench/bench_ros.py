@@ -1,7 +1,8 @@
 """Benchmark of primitive_server over real DDS, every party in its own process.
 
-    python bench/bench_ros.py            # full: 40 s stream, >= 500 Condition calls, 30 random executions
+    python bench/bench_ros.py            # full: 40 s stream, >= 1000 Condition calls, 30 random executions
     python bench/bench_ros.py --quick    # smoke run: 2 s stream, 20 calls, limits checked on that stream
+    python bench/bench_ros.py --sim-param joint_states_rate_hz:=250 --param gil_switch_interval:=0.0005
 
 Processes: sim_bridge (PyBullet Gen3 lite, joint_states at 1 kHz), primitive_server, a stream
 subscriber, a Condition client, and this orchestrator (action client).
@@ -10,7 +11,8 @@ Metrics (last line: space-separated name=value pairs):
 
 * ``srv_p50_ms``, ``srv_p99_ms`` -- Condition round trip (request with 5 via-points and the
   'object' context, preview 100 points) measured by the client process, which calls every 40 ms
-  (25 calls/s) while the stream runs;
+  (25 calls/s) while the stream runs: from just before sending to the response taken (the client
+  waits on an rcl wait set of its own, see role_client);
 * ``srv_handler_p50_ms``, ``srv_handler_p99_ms`` -- time inside the server's Condition callback
   (its log): the computation, without transport and executor dispatch;
 * ``stream_hz`` -- joint_command messages received per second by the subscriber during one long
@@ -18,8 +20,9 @@ Metrics (last line: space-separated name=value pairs):
   see role_subscriber: the Python measuring code neither delays nor loads the stream);
 * ``stream_period_p99_err_ms`` -- p99 over inter-arrival intervals of |interval - dt| (dt = 1 ms);
 * ``stream_missed`` -- intervals longer than 1.5 dt (each is a command that arrived at least half a
-  period late or not at all); ``stream_lost`` -- commands never received (gaps in the commands'
-  header.stamp, which is the nominal time of the tick: k dt);
+  period late or not at all); ``stream_lost`` -- gaps in the commands' header.stamp (the nominal
+  time of the tick, k dt): commands lost on the way plus the periods the server skipped after a tick
+  that started more than a period late (its deadlines then restart from now, see ros.stream_loop);
 * ``server_period_p99_err_ms``, ``server_missed`` -- the same two figures from the server's own
   publication instants (its log): pacing alone, without transport and subscriber scheduling;
 * ``cpu_<process>_pct`` -- CPU time of each process (user + system, /proc) per wall-clock second
