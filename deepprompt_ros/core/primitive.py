@@ -415,9 +415,11 @@ class DeepProMP:
         pre1 = self._phase_feats(x) @ self._dec_W1x.T + self._dec.b[0] + zw[..., None, :]  # (..., n, h)
         pre2 = act(pre1) @ self._dec.W[1].T + self._dec.b[1]
         y = (act(pre2) @ self._dec.W[2].T + self._dec.b[2]) * self._y_std + self._y_mean
-        a = dact(pre1)[..., None] * self._dec_W1z  # (..., n, h, k)
-        b2 = np.matmul(self._dec.W[1], a) * dact(pre2)[..., None]  # batched BLAS, (..., n, h, k)
-        jac = np.matmul(self._dec.W[2], b2) * self._y_std[:, None]  # (..., n, d, k)
+        # chain rule multiplied from the output side (d < k < h): per phase d·h² + d·h·k flops
+        # instead of h²·k + d·h·k
+        c = self._dec.W[2][..., None, :, :] * dact(pre2)[..., None, :]  # (..., n, d, h)
+        c = np.matmul(c, self._dec.W[1]) * dact(pre1)[..., None, :]  # batched BLAS, (..., n, d, h)
+        jac = np.matmul(c, self._dec_W1z) * self._y_std[:, None]  # (..., n, d, k)
         return y, jac
 
     def mean_trajectory(self, latent: LatentGaussian, x) -> np.ndarray:
