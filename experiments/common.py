@@ -1,0 +1,304 @@
+"""Shared pieces of the experiment harness: run sizes, task datasets, training configs, tables.
+
+Tasks are named. Built-in generators (no simulator needed) are always available; the PyBullet task
+datasets of :mod:`deepprompt_ros.core.tasks` (``make_task(name, split, quick, seed)``) plug in by
+name when that module exists — it is imported lazily, only when one of its tasks is asked for.
+
+==================  ==========================================================================
+task                data
+==================  ==========================================================================
+``gen3_lite_reach`` :func:`core.reach.reach_demos` on the Kinova Gen3 lite (6 joints), context
+                    ``object`` (3,) — the object position; no images
+``wam_reach``       the same reaching demonstrator on the Barrett WAM (7 joints), context ``object``
+``bimodal_sine``    :func:`core.dataset.bimodal_sine` (1 joint, two modes), context ``mode`` (1,)
+``reach``,          :func:`core.tasks.make_task` (PyBullet analogues of the paper's RLBench tasks on
+``close_box``,      the WAM, and the Kinova pick-and-place; contexts and camera images), when
+``pour``,           ``deepprompt_ros/core/tasks.py`` exists; generated splits are cached on disk
+``kinova_pick_place`` (:func:`cached_task_split`)
+==================  ==========================================================================
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import importlib.util
+import json
+import math
+import os
+import pathlib
+import tempfile
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+
+from deepprompt_ros.core.dataset import DemoDataset, bimodal_sine
+from deepprompt_ros.core.train import TrainConfig
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+MODELS = ROOT / "models"
+PYBULLET_TASKS = ("reach", "close_box", "pour", "kinova_pick_place")
+# Latent sizes of the paper (Sec. IV): 16 for Reach and Kinova, 32 for Close Box and Pour Water.
+PAPER_LATENT_DIM = {"reach": 16, "kinova_pick_place": 16, "close_box": 32, "pour": 32}
+# Seeds of the generated data: training / validation / test demonstrations come from one generated
+# set split in that order; the models' own seeds never change the data.
+DATA_SEED = 1000
+
+
+@dataclasses.dataclass(frozen=True)
+class Scale:
+    """How big a run is: ``tiny`` (the smoke test), ``quick`` (≲ 2 min), ``medium`` (the run documented
+    in EXPERIMENTS.md), ``full`` (closer to the paper; hours here).
+
+    Attributes
+    ----------
+    recon_tasks : task names of the reconstruction experiment; () = :func:`default_tasks`
+    recon_seeds : models trained per (task, model) — ProMP: bootstrap resamples of the training set
+    recon_steps, recon_val_every : updates per deep model and validation period
+    builtin_sizes : (n_train, n_val, n_test) demonstrations of a built-in task
+    task_sizes : (n_train, n_val, n_test) of a PyBullet task; None = ``make_task``'s own sizes
+    task_quick : ``make_task(..., quick=)`` (its quick sizes and no simulation)
+    max_test : at most this many test demonstrations are reconstructed (0 = all)
+    refine_sets, refine_n_via, refine_budgets : refinement sets per N, the N's, iteration budgets
+    rhythmic_cycles : cycles shown in the rhythmic experiment
+    small_task, small_* : small-data experiment task and sizes
+    """
+
+    name: str
+    recon_tasks: tuple[str, ...] = ()
+    recon_seeds: int = 2
+    recon_steps: int = 150
+    recon_val_every: int = 50
+    builtin_sizes: tuple[int, int, int] = (60, 15, 30)
+    task_sizes: tuple[int, int, int] | None = None
+    task_quick: bool = True
+    max_test: int = 0
+    refine_sets: int = 4
+    refine_n_via: tuple[int, ...] = (1, 5, 50)
+    refine_budgets: tuple[int, ...] = (1, 3, 10, 30, 200)
+    rhythmic_cycles: int = 3
+    rhythmic_train_steps: int = 300
+    small_task: str = "wam_reach"
+    small_n_train: int = 30
+    small_n_test: int = 10
+    small_seeds: int = 1
+    small_steps: int = 150
+
+
+SCALES = {
+    "tiny": Scale("tiny", recon_tasks=("gen3_lite_reach",), recon_seeds=2, recon_steps=30, recon_val_every=15,
+                  builtin_sizes=(40, 8, 10), refine_sets=2, refine_budgets=(1, 10, 200), small_n_test=5,
+                  small_steps=30, rhythmic_train_steps=60),
+    "quick": Scale("quick", recon_tasks=("gen3_lite_reach",), recon_seeds=2, recon_steps=100, recon_val_every=50,
+                   builtin_sizes=(60, 15, 25), refine_sets=3, refine_budgets=(1, 3, 10, 200), small_n_test=10,
+                   small_steps=150),
+    "medium": Scale("medium", recon_seeds=2, recon_steps=500, recon_val_every=100, builtin_sizes=(100, 20, 50),
+                    task_sizes=(60, 15, 30), task_quick=False, refine_sets=20,
+                    refine_budgets=(1, 2, 3, 5, 10, 20, 50, 100, 200), small_task="close_box", small_n_test=30,
+                    small_seeds=3, small_steps=1500, rhythmic_train_steps=3000),
+    "full": Scale("full", recon_seeds=3, recon_steps=2000, recon_val_every=250, builtin_sizes=(200, 50, 100),
+                  task_sizes=(200, 50, 100), task_quick=False, refine_sets=50,
+                  refine_budgets=(1, 2, 3, 5, 10, 20, 50, 100, 200), small_task="close_box", small_n_test=50,
+                  small_seeds=3, small_steps=3000, rhythmic_train_steps=3000),
+}
+
+
+# ------------------------------------------------------------------------------------------------
+# Tasks
+# ------------------------------------------------------------------------------------------------
+
+def _reach(robot: str) -> Callable[[int, int], DemoDataset]:
+    def make(n: int, seed: int) -> DemoDataset:
+        from deepprompt_ros.core.reach import reach_demos  # pinocchio: imported when used
+
+        return reach_demos(robot, n_demos=n, seed=seed)
+    return make
+
+
+BUILTIN_TASKS: dict[str, Callable[[int, int], DemoDataset]] = {
+    "gen3_lite_reach": _reach("gen3_lite"),
+    "wam_reach": _reach("wam"),
+    "bimodal_sine": lambda n, seed: bimodal_sine(n_demos=n, seed=seed),
+}
+
+
+def pybullet_tasks_available() -> bool:
+    """True when ``deepprompt_ros/core/tasks.py`` exists (checked without importing it)."""
+    return importlib.util.find_spec("deepprompt_ros.core.tasks") is not None
+
+
+def default_tasks(scale: Scale) -> tuple[str, ...]:
+    """The task list when none is given: ``scale.recon_tasks`` if set, else the PyBullet tasks (when
+    ``core/tasks.py`` exists) followed by the built-in ``gen3_lite_reach`` and ``bimodal_sine``."""
+    if scale.recon_tasks:
+        return scale.recon_tasks
+    return (PYBULLET_TASKS if pybullet_tasks_available() else ()) + ("gen3_lite_reach", "bimodal_sine")
+
+
+def small_data_task(scale: Scale) -> str:
+    """``scale.small_task``, or the built-in 7-joint ``wam_reach`` if it is a PyBullet task that is missing."""
+    if scale.small_task in PYBULLET_TASKS and not pybullet_tasks_available():
+        return "wam_reach"
+    return scale.small_task
+
+
+@dataclasses.dataclass(frozen=True)
+class TaskData:
+    name: str
+    train: DemoDataset
+    val: DemoDataset
+    test: DemoDataset
+
+
+def _subset(ds: DemoDataset, idx: Sequence[int], tag: str) -> DemoDataset:
+    return DemoDataset(tuple(ds.demos[i] for i in idx), f"{ds.source}:{tag}")
+
+
+def load_task(name: str, scale: Scale, sizes: tuple[int, int, int] | None = None) -> TaskData:
+    """Train / validation / test demonstrations of task ``name``.
+
+    Built-in tasks: one set of n_train + n_val + n_test demos generated with seed :data:`DATA_SEED`,
+    split in that order. PyBullet tasks: ``make_task(name, split=..., n=..., quick=scale.task_quick,
+    seed=0)`` (``n`` from ``sizes`` or ``scale.task_sizes``; None = the task's own sizes), cached on disk
+    by :func:`cached_task_split`. The test set is cut to ``scale.max_test`` demos when that is > 0.
+    """
+    if name in BUILTIN_TASKS:
+        n_tr, n_va, n_te = sizes or scale.builtin_sizes
+        ds = BUILTIN_TASKS[name](n_tr + n_va + n_te, DATA_SEED)
+        tr = _subset(ds, range(n_tr), "train")
+        va = _subset(ds, range(n_tr, n_tr + n_va), "val")
+        te = _subset(ds, range(n_tr + n_va, n_tr + n_va + n_te), "test")
+    elif name in PYBULLET_TASKS:
+        if not pybullet_tasks_available():
+            raise ValueError(f"task '{name}' needs deepprompt_ros/core/tasks.py (make_task), which is not there; "
+                             f"built-in tasks: {sorted(BUILTIN_TASKS)}")
+        sz = sizes or scale.task_sizes or (None, None, None)
+        tr, va, te = (cached_task_split(name, s, n, scale.task_quick) for s, n in zip(("train", "val", "test"), sz))
+    else:
+        raise ValueError(f"unknown task '{name}'; expected one of {sorted(BUILTIN_TASKS)} or the PyBullet tasks "
+                         f"{list(PYBULLET_TASKS)}")
+    if scale.max_test and len(te) > scale.max_test:
+        te = _subset(te, range(scale.max_test), f"first{scale.max_test}")
+    return TaskData(name, tr, va, te)
+
+
+def data_cache_dir() -> pathlib.Path:
+    """Where generated PyBullet task splits are kept between runs (``$DEEPPROMPT_EXPERIMENTS_DATA`` or
+    ``<tmp>/deepprompt_experiments_data``)."""
+    env = os.environ.get("DEEPPROMPT_EXPERIMENTS_DATA")
+    return pathlib.Path(env) if env else pathlib.Path(tempfile.gettempdir()) / "deepprompt_experiments_data"
+
+
+_TASKS: list = []
+
+
+def _tasks_module():
+    """(``core.tasks``, hash of its source) — the hash taken once, when the module is first imported
+    here: the code that generates the data is the code in memory, even if the file changes later."""
+    if not _TASKS:
+        from deepprompt_ros.core import tasks
+
+        _TASKS.append((tasks, hashlib.sha1(pathlib.Path(tasks.__file__).read_bytes()).hexdigest()[:10]))
+    return _TASKS[0]
+
+
+def cached_task_split(name: str, split: str, n: int | None, quick: bool, seed: int = 0) -> DemoDataset:
+    """``core.tasks.make_task(name, split, n, quick, seed)``, generated once and then read from
+    :func:`data_cache_dir` (the key includes a hash of ``core/tasks.py``, so a changed generator is
+    never read from a stale cache)."""
+    from deepprompt_ros.core.dataset import load_dataset
+
+    tasks, digest = _tasks_module()
+    folder = data_cache_dir() / f"{name}_{split}_n{n}_q{int(quick)}_s{seed}_{digest}"
+    if folder.is_dir():
+        return load_dataset(folder)
+    ds = tasks.make_task(name, split=split, n=n, quick=quick, seed=seed)
+    part = folder.with_name(folder.name + f".part{os.getpid()}")
+    ds.save(part)
+    part.rename(folder)  # a crash never leaves a half-written cache entry under the final name
+    return DemoDataset(load_dataset(folder).demos, ds.source)
+
+
+def base_train_config(path: str | pathlib.Path | None = None) -> TrainConfig:
+    """The deep models' base configuration: ``path`` (a TrainConfig YAML, used as is), or the shipped
+    ``config/train_gen3_lite_reach.yaml`` (Neural-Process objective, Adam lr 1e-3) with the paper's
+    mini-batches of 16."""
+    if path:
+        return TrainConfig.from_yaml(path)
+    return dataclasses.replace(TrainConfig.from_yaml(ROOT / "config" / "train_gen3_lite_reach.yaml"), batch_size=16)
+
+
+def train_config(base: TrainConfig, steps: int, val_every: int, seed: int, task: str | None = None) -> TrainConfig:
+    """``base`` with the run's steps / seed, one torch thread, KL annealing over at most a quarter of
+    the updates, and the paper's latent size for the paper's tasks."""
+    kw = dict(steps=steps, val_every=min(val_every, steps), seed=seed, threads=1,
+              kl_anneal_steps=max(1, min(base.kl_anneal_steps, steps // 4)))
+    if task in PAPER_LATENT_DIM:
+        kw["latent_dim"] = PAPER_LATENT_DIM[task]
+    return dataclasses.replace(base, **kw)
+
+
+# ------------------------------------------------------------------------------------------------
+# Statistics and tables
+# ------------------------------------------------------------------------------------------------
+
+def mean_se(values: Sequence[float]) -> tuple[float, float]:
+    """Mean and standard error (sample std / √n; NaN for n < 2) of finite values."""
+    v = np.asarray([x for x in values if x is not None and math.isfinite(x)], dtype=np.float64)
+    if v.size == 0:
+        return float("nan"), float("nan")
+    se = float(v.std(ddof=1) / math.sqrt(v.size)) if v.size > 1 else float("nan")
+    return float(v.mean()), se
+
+
+def fmt(x: float, digits: int = 2) -> str:
+    if x is None or not math.isfinite(x):
+        return "—"
+    return f"{x:.{digits}e}"
+
+
+def fmt_pm(mean: float, se: float) -> str:
+    if mean is None or not math.isfinite(mean):
+        return "—"
+    return f"{mean:.2e} ± {se:.1e}" if math.isfinite(se) else f"{mean:.2e}"
+
+
+def markdown_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    out += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    return "\n".join(out) + "\n"
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if dataclasses.is_dataclass(o):
+        return dataclasses.asdict(o)
+    if isinstance(o, pathlib.Path):
+        return str(o)
+    raise TypeError(f"not JSON serializable: {type(o).__name__}")
+
+
+def write_outputs(out: pathlib.Path, stem: str, data: Mapping, markdown: str) -> list[pathlib.Path]:
+    """``<out>/<stem>.json`` (NaN written as null) and ``<out>/<stem>.md``."""
+    out.mkdir(parents=True, exist_ok=True)
+    js = out / f"{stem}.json"
+    js.write_text(json.dumps(_nan_to_none(data), indent=1, default=_json_default, allow_nan=False) + "\n")
+    md = out / f"{stem}.md"
+    md.write_text(markdown)
+    return [js, md]
+
+
+def _nan_to_none(o):
+    if isinstance(o, float) and not math.isfinite(o):
+        return None
+    if isinstance(o, Mapping):
+        return {str(k): _nan_to_none(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_nan_to_none(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return _nan_to_none(o.tolist())
+    if isinstance(o, np.floating):
+        return _nan_to_none(float(o))
+    return o

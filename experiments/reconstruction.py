@@ -1,0 +1,172 @@
+"""Experiment 1 — reconstruction of held-out demonstrations (paper Sec. IV, radar-plot figure).
+
+For every task, model (:data:`core.baselines.MODEL_CLASSES`) and seed: train on the task's training
+demonstrations (best validation weights kept), then reconstruct each test demonstration from
+
+``via_point``   the full trajectory as via-points (the paper's "Via Point"),
+``image``       the first point + the demo's images,
+``low_dim``     the first point + the low-dimensional contexts,
+``image+low``   the first point + both,
+``aggregate``   the mean of the above that the model and the data support,
+
+(the first point is "the initial robot position included with each context", as in the paper), with
+:func:`core.baselines.reconstruction_mse` (decoded mean vs demo on 100 phases, rad²). An extra
+column, ``via_5`` (5 random via-points per demo, the same for every model), is not in the paper and
+not in the aggregate: it is the deployment case the models were trained for.
+
+ProMP is deterministic: its "seeds" are bootstrap resamples of the training set (the paper
+bootstraps ProMP). ProMP takes no images, so its aggregate averages fewer conditionings.
+"""
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+import time
+from typing import Callable, Sequence
+
+import numpy as np
+
+from deepprompt_ros.core.baselines import MODEL_CLASSES, ProMPModel, available_conditionings, reconstruction_mse
+from deepprompt_ros.core.dataset import DemoDataset
+from deepprompt_ros.core.train import TrainConfig
+
+from . import common
+from .common import Scale, TaskData
+
+CONDITIONING_LABELS = {"via_point": "Via Point", "image": "Image", "low_dim": "Low Dim", "image+low": "Image+Low",
+                       "aggregate": "Aggregate", "via_5": "5 via-points"}
+PAPER_CONDITIONINGS = ("via_point", "image", "low_dim", "image+low", "aggregate")
+MODEL_LABELS = {"deepprompt": "DeepProMP", "promp": "ProMP", "cnmp": "CNMP", "vae_cnmp": "VAE-CNMP",
+                "cnmp_indep": "CNMP (Indep)", "vae_cnmp_indep": "VAE-CNMP (Indep)"}
+N_VIA_EXTRA = 5
+
+
+def bootstrap(ds: DemoDataset, seed: int) -> DemoDataset:
+    """A resample of ``ds`` with replacement (ProMP's seeds)."""
+    idx = np.random.default_rng([seed, 7]).integers(0, len(ds), len(ds))
+    return DemoDataset(tuple(ds.demos[i] for i in idx), f"{ds.source}:bootstrap({seed})")
+
+
+def evaluate(model, test: DemoDataset, n_points: int) -> dict[str, float]:
+    """{conditioning: MSE rad²} for every conditioning the model and data support, their aggregate,
+    and ``via_5``."""
+    out = {c: reconstruction_mse(model, test, c, n_points=n_points) for c in available_conditionings(model, test)}
+    out["aggregate"] = float(np.mean(list(out.values())))
+    out["via_5"] = reconstruction_mse(model, test, "via_point", n_via=N_VIA_EXTRA, n_points=n_points, seed=0)
+    return out
+
+
+def run_task(task: TaskData, base: TrainConfig, scale: Scale, kinds: Sequence[str] | None = None,
+             log: Callable[[str], None] = print) -> dict:
+    """Train and evaluate every model on one task.
+
+    Returns
+    -------
+    dict: ``runs`` {kind: [ {seed, mse: {cond: value}, fit_s, best_val} ]}, ``stats`` {kind: {cond:
+    {mean, se, n}}}, ``conditionings`` (those any model has), dataset sizes.
+    """
+    runs: dict[str, list] = {}
+    for cls in MODEL_CLASSES:
+        if kinds and cls.kind not in kinds:
+            continue
+        runs[cls.kind] = []
+        for seed in range(scale.recon_seeds):
+            cfg = common.train_config(base, scale.recon_steps, scale.recon_val_every, seed, task.name)
+            t0 = time.perf_counter()
+            if cls is ProMPModel:
+                model = cls().fit(bootstrap(task.train, seed), cfg, task.val)
+            else:
+                model = cls().fit(task.train, cfg, task.val)
+            fit_s = time.perf_counter() - t0
+            mse = evaluate(model, task.test, cfg.n_points)
+            runs[cls.kind].append({"seed": seed, "mse": mse, "fit_s": fit_s,
+                                   "eval_s": time.perf_counter() - t0 - fit_s})
+            log(f"  {task.name:16s} {cls.kind:15s} seed {seed}  fit {fit_s:6.1f} s  "
+                + "  ".join(f"{c} {v:.2e}" for c, v in mse.items()))
+    conds = [c for c in PAPER_CONDITIONINGS + ("via_5",) if any(c in r["mse"] for rs in runs.values() for r in rs)]
+    stats = {k: {c: dict(zip(("mean", "se"), common.mean_se([r["mse"].get(c, np.nan) for r in rs])),
+                         n=sum(c in r["mse"] for r in rs)) for c in conds} for k, rs in runs.items()}
+    return {"runs": runs, "stats": stats, "conditionings": conds,
+            "sizes": {"train": len(task.train), "val": len(task.val), "test": len(task.test)},
+            "joints": len(task.train.joint_names), "contexts": task.train.context_dims,
+            "images": task.train.image_shape}
+
+
+# ------------------------------------------------------------------------------------------------
+# Figure and table
+# ------------------------------------------------------------------------------------------------
+
+def radar(ax, task: str, result: dict) -> None:
+    """Log-scale radar of mean MSE per conditioning (paper's figure); smaller polygon = better."""
+    conds = [c for c in result["conditionings"] if c in PAPER_CONDITIONINGS]
+    stats = result["stats"]
+    means = np.array([[stats[k][c]["mean"] for c in conds] for k in stats], dtype=np.float64)
+    logs = np.log10(np.where(means > 0, means, np.nan))
+    lo = np.floor(np.nanmin(logs)) - 0.5
+    hi = np.ceil(np.nanmax(logs))
+    ang = np.linspace(0, 2 * np.pi, len(conds), endpoint=False)
+    ang_c = np.append(ang, ang[0])
+    for i, kind in enumerate(stats):
+        r = np.append(logs[i], logs[i][0]) - lo
+        ax.plot(ang_c, r, marker="*" if kind == "promp" else "o", ms=7 if kind == "promp" else 4, lw=1.4,
+                label=MODEL_LABELS.get(kind, kind))
+    ticks = np.arange(lo + 0.5, hi + 1)
+    ax.set_rticks(ticks - lo)
+    ax.set_yticklabels([f"1e{int(t)}" for t in ticks], fontsize=7)
+    ax.set_rlim(0, hi - lo + 0.2)
+    ax.set_xticks(ang)
+    ax.set_xticklabels([CONDITIONING_LABELS[c] for c in conds], fontsize=8)
+    ax.set_title(f"{task}\nMSE (rad², log scale)", fontsize=9)
+
+
+def plot(results: dict[str, dict], out: pathlib.Path) -> list[pathlib.Path]:
+    import matplotlib.pyplot as plt
+
+    files = []
+    for task, res in results.items():
+        fig = plt.figure(figsize=(5, 4.6))
+        ax = fig.add_subplot(projection="polar")
+        radar(ax, task, res)
+        ax.legend(loc="upper left", bbox_to_anchor=(-0.25, -0.05), ncol=3, fontsize=7)
+        fig.tight_layout()
+        f = out / f"reconstruction_radar_{task}.png"
+        fig.savefig(f, dpi=100)
+        plt.close(fig)
+        files.append(f)
+    return files
+
+
+def markdown(results: dict[str, dict], meta: dict) -> str:
+    lines = [f"# Reconstruction of held-out demonstrations (MSE, rad², mean ± standard error over "
+             f"{meta['seeds']} seeds)\n",
+             f"Deep models: {meta['steps']} updates each (best validation weights); ProMP: bootstrap resamples "
+             "of the training set. `via_5` is not in the paper nor in the aggregate. — = not applicable.\n"]
+    for task, res in results.items():
+        conds = res["conditionings"]
+        s = res["sizes"]
+        lines.append(f"\n## {task}\n\n{res['joints']} joints; contexts {res['contexts'] or 'none'}; images "
+                     f"{res['images'] or 'none'}; {s['train']} train / {s['val']} val / {s['test']} test demos\n\n")
+        rows = [[MODEL_LABELS.get(k, k)] + [common.fmt_pm(st[c]["mean"], st[c]["se"]) for c in conds]
+                for k, st in res["stats"].items()]
+        lines.append(common.markdown_table(["model"] + [CONDITIONING_LABELS[c] for c in conds], rows))
+    return "".join(lines)
+
+
+def run(scale: Scale, out: pathlib.Path, tasks: Sequence[str] | None = None, base: TrainConfig | None = None,
+        log: Callable[[str], None] = print) -> dict:
+    """Experiment 1 on ``tasks`` (default :func:`common.default_tasks`); writes
+    ``reconstruction.{json,md}`` and ``reconstruction_radar_<task>.png`` under ``out``."""
+    base = base or common.base_train_config()
+    tasks = tuple(tasks) if tasks else common.default_tasks(scale)
+    results = {}
+    for name in tasks:
+        t0 = time.perf_counter()
+        data = common.load_task(name, scale)
+        log(f"  task {name}: {len(data.train)} train / {len(data.val)} val / {len(data.test)} test "
+            f"({time.perf_counter() - t0:.1f} s to load)")
+        results[name] = run_task(data, base, scale, log=log)
+    meta = {"scale": scale.name, "seeds": scale.recon_seeds, "steps": scale.recon_steps,
+            "base_config": dataclasses.asdict(base), "tasks": list(tasks)}
+    files = plot(results, out)
+    files += common.write_outputs(out, "reconstruction", {"meta": meta, "tasks": results}, markdown(results, meta))
+    return {"meta": meta, "tasks": results, "files": [str(f) for f in files]}

@@ -1,0 +1,120 @@
+"""Reproduce the paper's experiments: one command, quick and full modes.
+
+Usage::
+
+    python experiments/run.py [--quick | --full] [--only NAME ...] [--out DIR] [--tasks TASK ...]
+                              [--config TRAIN.yaml]
+
+``--quick`` (default) is a smoke-sized run (≲ 2 min on 2 cores, built-in data only) written to
+``--out`` (default ``$TMPDIR/deepprompt_experiments_quick``); ``--medium`` is the run documented in
+EXPERIMENTS.md (PyBullet tasks at reduced sizes) and ``--full`` a larger one closer to the paper,
+both written to ``docs/experiments/`` unless ``--out`` is given. Experiments (``--only`` takes these
+names):
+
+``reconstruction``  held-out reconstruction MSE of the six models per conditioning, radar plots
+``refinement``      deployment-time refinement error vs iterations, posterior vs prior init
+``rhythmic``        learned cyclic motion vs the demonstration, continuity at the seam
+``small_data``      ~30 demos of a 7-joint task: DeepProMP (± refinement) vs ProMP
+``bimodal``         bimodal sine: 3 / many / conflicting via-points
+
+Each experiment writes PNG figures and ``<name>.md`` / ``<name>.json`` tables; ``timings.json`` has
+the wall time of each. One torch / BLAS thread (the machine is shared).
+"""
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("MKL_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import importlib  # noqa: E402
+import json  # noqa: E402
+import pathlib  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+import matplotlib  # noqa: E402
+
+matplotlib.use("Agg")
+import torch  # noqa: E402
+
+from experiments.common import SCALES, Scale, base_train_config  # noqa: E402
+
+EXPERIMENTS = ("reconstruction", "refinement", "rhythmic", "small_data", "bimodal")
+
+
+def run_all(scale: Scale, out: pathlib.Path, only=None, tasks=None, config=None, log=print) -> dict:
+    """Run the experiments ``only`` (default all) at ``scale``; returns {name: result} and writes
+    ``timings.json`` under ``out``."""
+    torch.set_num_threads(1)
+    out = pathlib.Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    names = list(only or EXPERIMENTS)
+    bad = sorted(set(names) - set(EXPERIMENTS))
+    if bad:
+        raise ValueError(f"unknown experiments {bad}; expected names from {list(EXPERIMENTS)}")
+    results, timings = {}, {}
+    t_all = time.perf_counter()
+    load0 = os.getloadavg()[0]
+    for name in names:
+        mod = importlib.import_module(f"experiments.{name}")
+        log(f"== {name} ({scale.name}) ==")
+        t0 = time.perf_counter()
+        if name == "reconstruction":
+            results[name] = mod.run(scale, out, tasks=tasks, base=base_train_config(config), log=log)
+        elif name == "small_data":
+            results[name] = mod.run(scale, out, train_config=base_train_config(config), log=log)
+        else:
+            results[name] = mod.run(scale, out, log=log)
+        timings[name] = time.perf_counter() - t0
+        log(f"== {name}: {timings[name]:.1f} s wall time ==")
+    timings["total"] = time.perf_counter() - t_all
+    info = {"scale": scale.name, "wall_time_s": timings, "load_average_1min": {"start": load0,
+                                                                               "end": os.getloadavg()[0]},
+            "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads()}
+    (out / "timings.json").write_text(json.dumps(info, indent=1) + "\n")
+    log("wall time: " + ", ".join(f"{k} {v:.1f} s" for k, v in timings.items()))
+    return results
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="experiments/run.py", description=__doc__.split("\n\n")[0])
+    mode = ap.add_mutually_exclusive_group()
+    mode.add_argument("--quick", action="store_const", const="quick", dest="scale", help="smoke-sized run (default)")
+    mode.add_argument("--medium", action="store_const", const="medium", dest="scale",
+                      help="the run documented in EXPERIMENTS.md (PyBullet tasks at reduced sizes)")
+    mode.add_argument("--full", action="store_const", const="full", dest="scale", help="closer to the paper's sizes")
+    mode.add_argument("--scale", choices=sorted(SCALES), help=argparse.SUPPRESS)  # 'tiny' for the test suite
+    ap.add_argument("--only", nargs="+", choices=EXPERIMENTS, metavar="NAME", help=f"subset of {list(EXPERIMENTS)}")
+    ap.add_argument("--out", help="output folder (default: docs/experiments for --medium / --full, a temp folder "
+                    "for --quick)")
+    ap.add_argument("--tasks", nargs="+", help="reconstruction tasks (default: gen3_lite_reach for --quick; else "
+                    "reach close_box pour kinova_pick_place (if deepprompt_ros/core/tasks.py exists) gen3_lite_reach "
+                    "bimodal_sine)")
+    ap.add_argument("--config", help="TrainConfig YAML for the deep models (default config/train_gen3_lite_reach.yaml)")
+    args = ap.parse_args(argv)
+    scale = SCALES[args.scale or "quick"]
+    if args.out:
+        out = pathlib.Path(args.out)
+    elif scale.name in ("medium", "full"):
+        out = ROOT / "docs" / "experiments"
+    else:
+        out = pathlib.Path(tempfile.gettempdir()) / "deepprompt_experiments_quick"
+    try:
+        run_all(scale, out, args.only, args.tasks, args.config)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"outputs in {out.resolve()}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
