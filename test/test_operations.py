@@ -96,6 +96,20 @@ def test_refinement_meets_reachable_via_points_within_1e6(reach):
     assert met >= 6, met
 
 
+def test_refinement_error_history_is_the_best_exact_error_per_iteration(reach):
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 3):  # met quickly / needs the continuation / over-determined (best fit)
+        xv = np.sort(rng.uniform(0.05, 0.95, n))
+        yv = reach.decode(rng.standard_normal(reach.latent_dim), xv)
+        post = reach.condition(xv, yv)
+        res = reach.refine(post, xv, yv, max_iterations=200)
+        h = res.error_history
+        assert h.shape == (res.iterations + 1,)
+        assert h[0] == pytest.approx(np.abs(reach.mean_trajectory(post, xv) - yv).max(), rel=1e-9)
+        assert np.all(np.diff(h) <= 0) and h[-1] == res.max_error
+        assert h[-1] < 0.1 * h[0], (n, h[0], h[-1])
+
+
 def test_overdetermined_reachable_set_is_met_from_a_nearby_start(reach):
     rng = np.random.default_rng(1)
     z_true = rng.standard_normal(reach.latent_dim)

@@ -88,6 +88,10 @@ class RefinementResult:
         budget) with a residual above tol: the via-points cannot all be met by this primitive; the
         best fit found is returned, never a silent miss.
     reason : str
+    error_history : array, shape (iterations + 1,)
+        Max via-point error of the exact decoder at the best μ̃ found so far: before the first
+        iteration, then after each one (all stages: LM, continuation, restarts). Non-increasing;
+        its last value is ``max_error``.
     """
 
     latent: LatentGaussian
@@ -97,6 +101,7 @@ class RefinementResult:
     iterations: int
     reachable: bool
     reason: str
+    error_history: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
 
 
 class _NumpyMLP:
@@ -536,6 +541,15 @@ class DeepProMP:
 
         eye = np.eye(self.latent_dim)
         rng = np.random.default_rng(seed)
+        history = []  # exact-decoder max error at the best μ̃ so far, one entry per iteration
+        best = [None, math.inf]  # the iterate with the smallest exact error seen in any stage
+
+        def record(mu, r):
+            # r is exact when no smoothing is active; on a smooth surrogate, decode exactly once more
+            err = float(np.abs(r).max()) if smoothing[0] is None else float(np.abs((y - self.decode(mu, x)) * mf).max())
+            if err < best[1]:
+                best[0], best[1] = mu.copy(), err
+            history.append(best[1])
 
         def levenberg_marquardt(mu, budget):
             """Levenberg–Marquardt with Nielsen's damping update (Madsen, Nielsen & Tingleff 2004,
@@ -545,6 +559,8 @@ class DeepProMP:
             follows the gain ratio ρ between actual and predicted decrease (λ ← λ·max(1/3, 1−(2ρ−1)³)
             on success, λ ← λν, ν ← 2ν on failure)."""
             r, jac = residual(mu)
+            if not history:
+                record(mu, r)
             cost = float((r ** 2).sum())
             J = jac.reshape(-1, self.latent_dim)
             A, g = J.T @ J, J.T @ r.reshape(-1)
@@ -570,7 +586,9 @@ class DeepProMP:
                     lam *= nu
                     nu *= 2.0
                     if lam > 1e8 * max(float(np.diag(A).max()), 1e-12):
+                        record(mu, r)
                         return mu, r, it, "stationary (no descent step)"
+                record(mu, r)
             return mu, r, it, "budget"
 
         def solve_from(mu0, budget):
@@ -605,7 +623,12 @@ class DeepProMP:
             it += it2
             if np.abs(r2).max() < np.abs(r).max():
                 mu, r, reason = mu2, r2, reason2
+        if best[1] < float(np.abs(r).max()):  # an intermediate iterate (e.g. of the continuation) fit better
+            mu = best[0]
+            r = residual(mu)[0]
         max_err = float(np.abs(r).max())
+        if history and max_err < history[-1]:  # a restart that started (and stopped) on a better point
+            history[-1] = max_err
         if max_err <= tol:
             reason = "converged"
         elif restarts:
@@ -642,4 +665,5 @@ class DeepProMP:
         y_bar = self.decode(mu[None] + eps * s[None], x).mean(0)
         return RefinementResult(
             latent=LatentGaussian(mu, s ** 2), max_error=max_err, errors=r, iterations=it,
-            sample_mean_error=float(np.abs((y - y_bar) * mf).max()), reachable=max_err <= tol, reason=reason)
+            sample_mean_error=float(np.abs((y - y_bar) * mf).max()), reachable=max_err <= tol, reason=reason,
+            error_history=np.array(history))
