@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 export AMENT_PREFIX_PATH := $(abspath $(VENV))$(if $(AMENT_PREFIX_PATH),:$(AMENT_PREFIX_PATH))
 
-.PHONY: setup run test bench models train-sine train-reach train-shake clean
+.PHONY: setup run test bench experiments experiments-quick models train-sine train-reach train-shake clean
 
 setup:
 	bash tools/setup.sh $(VENV)
@@ -15,6 +15,13 @@ test: setup
 
 bench: setup
 	$(PY) bench/run_all.py
+
+# The paper's experiments (EXPERIMENTS.md): --medium writes docs/experiments/ (~1 h here).
+experiments: setup
+	$(PY) experiments/run.py --medium
+
+experiments-quick: setup
+	$(PY) experiments/run.py --quick
 
 run: setup
 	$(PY) -m deepprompt_ros.run_main
