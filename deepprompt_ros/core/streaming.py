@@ -71,6 +71,10 @@ from typing import Callable, NamedTuple, Sequence
 import numpy as np
 from ruckig import InputParameter, Ruckig, RuckigError, Synchronization, Trajectory
 
+#: ``tuple.__new__(NamedTupleClass, values)`` builds a NamedTuple without its Python-level
+#: ``__new__`` (~0.3 µs less per sample on the control-rate paths).
+_tuple_new = tuple.__new__
+
 __all__ = [
     "JointLimits",
     "PhaseSample",
@@ -289,6 +293,7 @@ class PhaseClock:
             self._u_end = math.inf if cycles is None else cycles * self.duration
         else:
             self._u_end = self.duration
+        self._linear = not rhythmic and tau is None and _pchip is None
         self._u = 0.0
         self._k = float(time_scale)
         self._k_target = self._k
@@ -423,7 +428,7 @@ class PhaseClock:
     def peek(self, ahead: float) -> PhaseSample:
         """Predicted phase ``ahead`` seconds after the current tick at the current speed
         (and speed ramp), without advancing the clock. Used to look ahead in tracking."""
-        if not (math.isfinite(ahead) and ahead >= 0):
+        if not (0.0 <= ahead < math.inf):  # (False for NaN too)
             raise ValueError(f"look-ahead must be >= 0 s; got {ahead}")
         u, k, slope = self._integrate(ahead)
         return self._make_sample(u, k, slope, self._ticks * self.dt + ahead)
@@ -462,6 +467,17 @@ class PhaseClock:
                      k_dot: float | None = None, t: float | None = None) -> PhaseSample:
         if u is None:
             u, k, k_dot, t = self._u, self._k, self._k_slope, self._ticks * self.dt
+        if self._linear:  # x = u / T (the common case, inlined: called 2-3 times per tick)
+            T = self.duration
+            done = u >= self._u_end
+            if done or (u <= 0.0 and k < 0):
+                x_dot = x_ddot = 0.0
+            else:
+                x_dot = 1.0 / T * k
+                x_ddot = 0.0 * k * k + 1.0 / T * k_dot
+            if self.reverse:
+                return _tuple_new(PhaseSample, (t, 1.0 - u / T, -x_dot, -x_ddot, 0, done))
+            return _tuple_new(PhaseSample, (t, u / T, x_dot, x_ddot, 0, done))
         if self.rhythmic:
             done = u >= self._u_end
             s = u / self.duration
@@ -653,6 +669,13 @@ class StreamStatus(enum.IntEnum):
     APPROACHING = 5      #: far from the reference: intercepting it at a committed time
 
 
+# enum members as module constants: looking one up on the class costs ~0.15 µs, several per tick
+_TRACKING, _REACHED, _GUARD = StreamStatus.TRACKING, StreamStatus.REACHED, StreamStatus.POSITION_GUARD
+_STOPPING, _STOPPED, _ERROR = StreamStatus.STOPPING, StreamStatus.STOPPED, StreamStatus.ERROR
+_APPROACHING = StreamStatus.APPROACHING
+_F64 = np.dtype(np.float64)
+
+
 class StreamState(NamedTuple):
     """One streamed sample (the command for the next control tick).
 
@@ -666,6 +689,7 @@ class StreamState(NamedTuple):
         tracking step.
     clamped : array of bool, shape (d,)
         Joints whose target position was clipped into [lower + margin, upper - margin].
+        (``guarded`` and ``clamped`` are a shared read-only array when no joint is flagged.)
     error : str
         Ruckig's message when ``status`` is ERROR, else "".
     """
@@ -796,6 +820,11 @@ class RuckigStreamer:
         self._inp_sync.max_acceleration = list(self._a)
         self._inp_sync.max_jerk = list(self._j)
         self._inp_sync.synchronization = Synchronization.Time
+        # constant per input: step() plans at least one period, track() exactly the horizon
+        self._inp.minimum_duration = self.dt
+        self._inp_sync.minimum_duration = self.horizon
+        self._h_max = self.horizon * (1 + 1e-9)   # a tracking plan at most this long arrives in time
+        self._dt_max = self.dt * (1 + 1e-9)       # a step() plan at most this long: REACHED
         # NEVER set intermediate_positions (the community build would call a cloud API).
 
         self._q = self._qd = self._qdd = None
@@ -814,8 +843,10 @@ class RuckigStreamer:
         # while APPROACHING: (time of the committed target after the plans' start, time of the
         # current state after the plans' start, committed target rows, approaching joints)
         self._appr: tuple[float, float, tuple, list[int]] | None = None
-        self._no = np.zeros(d, dtype=bool)
+        self._no = np.zeros(d, dtype=bool)  # shared by every sample without a flagged joint
+        self._no.setflags(write=False)
         self._zero_list = [0.0] * d
+        self._shape = (d,)
         self._tlims = list(zip(self._t_lo.tolist(), self._t_hi.tolist(), self._v.tolist(),
                                self._a.tolist(), (2.0 * self._j).tolist()))
 
@@ -837,8 +868,9 @@ class RuckigStreamer:
 
     def at_rest(self, vel_tol: float = 1e-6, acc_tol: float = 1e-5) -> bool:
         """|qd| <= vel_tol and |qdd| <= acc_tol for every joint."""
-        self._require_started()
-        return all(abs(v) <= vel_tol for v in self._qd) and all(abs(a) <= acc_tol for a in self._qdd)
+        if self._q is None:
+            self._require_started()
+        return max(map(abs, self._qd)) <= vel_tol and max(map(abs, self._qdd)) <= acc_tol
 
     def _require_started(self):
         if self._q is None:
@@ -901,7 +933,7 @@ class RuckigStreamer:
         """Request a stop and produce one braking tick (for ticks without a reference)."""
         self._require_started()
         self._stopping = True
-        return self._brake_tick(StreamStatus.STOPPING)
+        return self._brake_tick(_STOPPING)
 
     def step(self, target_q, target_qd=None, target_qdd=None) -> StreamState:
         """Next sample of the time-optimal motion to a target state (re-planned every tick).
@@ -920,16 +952,17 @@ class RuckigStreamer:
         StreamState
             status REACHED once the sample is the (clamped) target state.
         """
-        self._require_started()
+        if self._q is None:
+            self._require_started()
         if self._stopping:
-            return self._brake_tick(StreamStatus.STOPPING)
+            return self._brake_tick(_STOPPING)
         self._appr = None
         target, clamped = self._sanitize(target_q, target_qd, target_qdd)
         try:
-            traj = self._plan(target, self.dt)
+            traj = self._plan(target, self._inp)
         except RuckigError as exc:
-            return self._brake_tick(StreamStatus.ERROR, clamped, str(exc).strip())
-        status = StreamStatus.REACHED if traj.duration <= self.dt * (1 + 1e-9) else StreamStatus.TRACKING
+            return self._brake_tick(_ERROR, clamped, str(exc).strip())
+        status = _REACHED if traj.duration <= self._dt_max else _TRACKING
         p, v, a = traj.at_time(self.dt)[:3]
         return self._advance(p, v, a, status, clamped)
 
@@ -949,30 +982,33 @@ class RuckigStreamer:
         -------
         StreamState
         """
-        self._require_started()
+        if self._q is None:
+            self._require_started()
         if self._stopping:
-            return self._brake_tick(StreamStatus.STOPPING)
+            return self._brake_tick(_STOPPING)
         dt = self.dt
-        d = self.n_joints
-        p, v, a = [0.0] * d, [0.0] * d, [0.0] * d
-        clamped = np.zeros(d, dtype=bool)
-        approaching: list[int] = []
+        approaching = ()
         try:
             if self._appr is not None:
                 # APPROACHING joints follow the committed interception plans while the
                 # reference still passes through the committed target at the committed time
+                d = self.n_joints
+                p, v, a = [0.0] * d, [0.0] * d, [0.0] * d
+                clamped = np.zeros(d, dtype=bool)
                 ahead_c, elapsed, target_c, joints = self._appr
                 self._appr = None
                 ahead = ahead_c - elapsed
                 if ahead >= dt * (1 + 1e-9):
                     target, clamped_a = self._reference_target(reference, ahead)
-                    if all(abs(target[k][j] - target_c[k][j]) <= 1e-9 * (1.0 + abs(target_c[k][j]))
-                           for j in joints for k in range(3)):
+                    if self._on_committed(target, target_c, joints):
+                        t = elapsed + dt
+                        traj_c = self._traj_c
                         for j in joints:
-                            p[j], v[j], a[j] = (c[0] for c in self._traj_c[j].at_time(elapsed + dt)[:3])
+                            pj, vj, aj = traj_c[j].at_time(t)[:3]
+                            p[j], v[j], a[j] = pj[0], vj[0], aj[0]
                             clamped[j] = clamped_a[j]
                         approaching = joints
-                        self._appr = (ahead_c, elapsed + dt, target_c, joints)
+                        self._appr = (ahead_c, t, target_c, joints)
             # TRACKING joints: the reference `horizon` ahead, arriving exactly then
             h = self.horizon
             target, clamped_h = self._reference_target(reference, h)
@@ -980,26 +1016,43 @@ class RuckigStreamer:
                 # fast path: one time-synchronized plan of all joints; when every joint can
                 # arrive within the horizon, its duration is the horizon and each joint's
                 # profile is the one its own planner would give (per-joint fallback otherwise)
-                traj = self._plan(target, h, self._inp_sync)
-                if traj.duration <= h * (1 + 1e-9):
+                traj = self._plan(target, self._inp_sync)
+                if traj.duration <= self._h_max:
                     p, v, a = traj.at_time(dt)[:3]
-                    return self._advance(p, v, a, StreamStatus.TRACKING, clamped_h)
+                    return self._advance(p, v, a, _TRACKING, clamped_h)
+                d = self.n_joints
+                p, v, a = [0.0] * d, [0.0] * d, [0.0] * d
+                clamped = np.zeros(d, dtype=bool)
             far = []
-            for j in range(d):
+            approach_above = self.approach_above
+            for j in range(self.n_joints):
                 if approaching and j in approaching:
                     continue
                 traj = self._plan_joint(j, target, h)
-                if traj.duration > self.approach_above:
+                if traj.duration > approach_above:
                     far.append(j)
                 else:
-                    p[j], v[j], a[j] = (c[0] for c in traj.at_time(dt)[:3])
+                    pj, vj, aj = traj.at_time(dt)[:3]
+                    p[j], v[j], a[j] = pj[0], vj[0], aj[0]
                     clamped[j] = clamped_h[j]
             if far:
                 self._commit_approach(reference, far, approaching, p, v, a, clamped)
         except RuckigError as exc:
-            return self._brake_tick(StreamStatus.ERROR, None, str(exc).strip())
-        status = StreamStatus.TRACKING if self._appr is None else StreamStatus.APPROACHING
+            return self._brake_tick(_ERROR, None, str(exc).strip())
+        status = _TRACKING if self._appr is None else _APPROACHING
         return self._advance(p, v, a, status, clamped)
+
+    @staticmethod
+    def _on_committed(target, target_c, joints) -> bool:
+        """The reference passes through the committed target of every approaching joint
+        (position, velocity, acceleration equal up to 1e-9 relative)."""
+        for k in range(3):
+            row, row_c = target[k], target_c[k]
+            for j in joints:
+                c = row_c[j]
+                if not abs(row[j] - c) <= 1e-9 * (1.0 + abs(c)):
+                    return False
+        return True
 
     def _commit_approach(self, reference, far, approaching, p, v, a, clamped):
         """Commit the joints ``far`` (and those already approaching, re-planned with them) to
@@ -1019,7 +1072,8 @@ class RuckigStreamer:
         # `ahead` and TRACKING (or a new interception) takes over
         for j in joints:
             self._j_traj[j], self._traj_c[j] = self._traj_c[j], self._j_traj[j]
-            p[j], v[j], a[j] = (c[0] for c in self._traj_c[j].at_time(self.dt)[:3])
+            pj, vj, aj = self._traj_c[j].at_time(self.dt)[:3]
+            p[j], v[j], a[j] = pj[0], vj[0], aj[0]
             clamped[j] = clamped_a[j]
         self._appr = (ahead, self.dt, target, joints)
 
@@ -1043,46 +1097,65 @@ class RuckigStreamer:
             q, qd, qdd handed to ruckig.
         clamped : array of bool, shape (d,)
         """
-        d = self.n_joints
-        rows = []
-        for label, x in (("position", target_q), ("velocity", target_qd), ("acceleration", target_qdd)):
-            if x is None:
-                rows.append(self._zero_list)
-                continue
-            arr = np.asarray(x, dtype=float)
-            if arr.shape != (d,):
-                raise ValueError(f"target {label} has shape {arr.shape}; expected ({d},), one value "
-                                 f"per joint: {', '.join(self.limits.names)}")
-            rows.append(arr.tolist())
-        tq, tv, ta = rows
-        q_t, v_t, a_t = [0.0] * d, [0.0] * d, [0.0] * d
-        clamped = np.zeros(d, dtype=bool)
-        for i, (lo, hi, vmax, amax, two_j) in enumerate(self._tlims):
-            q, v, a = tq[i], tv[i], ta[i]
-            if not (math.isfinite(q) and math.isfinite(v) and math.isfinite(a)):
+        tq = self._target_row("position", target_q)
+        tv = self._target_row("velocity", target_qd)
+        ta = self._target_row("acceleration", target_qdd)
+        clamped = None
+        i = 0
+        # (the rows are fresh lists: values that change are written in place)
+        for (lo, hi, vmax, amax, two_j), q, v, a in zip(self._tlims, tq, tv, ta):
+            # one test for the three: x * 0 is 0 for a finite x, NaN for inf / NaN (a finite
+            # sum that overflows only costs the exact check)
+            if (q + v + a) * 0.0 != 0.0 and not (math.isfinite(q) and math.isfinite(v)
+                                                  and math.isfinite(a)):
                 raise ValueError(f"target state of {self.limits.names[i]} is (q={q}, qd={v}, "
                                  f"qdd={a}); expected finite numbers")
             if q < lo or q > hi:
-                q_t[i] = lo if q < lo else hi
+                tq[i] = lo if q < lo else hi
+                tv[i] = ta[i] = 0.0  # velocity and acceleration 0
+                if clamped is None:
+                    clamped = np.zeros(len(tq), dtype=bool)
                 clamped[i] = True
-                continue  # velocity and acceleration 0
-            q_t[i] = q
-            v = vmax if v > vmax else (-vmax if v < -vmax else v)
-            v_t[i] = v
-            # |v| + a²/(2j) <= v_max: otherwise the velocity before (a opposing v) or after
-            # (a along v) the target state exceeds v_max and ruckig rejects the target.
-            cap = min(math.sqrt(max(two_j * (vmax - abs(v)), 0.0)) * (1.0 - 1e-9), amax)
-            a_t[i] = cap if a > cap else (-cap if a < -cap else a)
-        return (q_t, v_t, a_t), clamped
+            else:
+                if v > vmax:
+                    v = tv[i] = vmax
+                elif v < -vmax:
+                    v = tv[i] = -vmax
+                # |v| + a²/(2j) <= v_max: otherwise the velocity before (a opposing v) or after
+                # (a along v) the target state exceeds v_max and ruckig rejects the target.
+                # (|v| <= v_max here, so the root's argument is >= 0.)
+                cap = math.sqrt(two_j * (vmax - abs(v))) * (1.0 - 1e-9)
+                if amax < cap:
+                    cap = amax
+                if a > cap:
+                    ta[i] = cap
+                elif a < -cap:
+                    ta[i] = -cap
+            i += 1
+        return (tq, tv, ta), (self._no if clamped is None else clamped)
 
-    def _plan(self, target, min_duration: float, inp: InputParameter | None = None) -> Trajectory:
+    def _target_row(self, label: str, x) -> list:
+        """One target array (d,) as a new list of floats (a shape error names the joints)."""
+        if x is None:
+            return self._zero_list[:]
+        if type(x) is not np.ndarray or x.dtype is not _F64:
+            x = np.asarray(x, dtype=float)
+        if x.shape != self._shape:
+            d = self.n_joints
+            raise ValueError(f"target {label} has shape {x.shape}; expected ({d},), one value "
+                             f"per joint: {', '.join(self.limits.names)}")
+        return x.tolist()
+
+    def _plan(self, target, inp: InputParameter) -> Trajectory:
         """Plan all joints together from the current state (``inp``: the step() input with
-        the user's synchronization, or the time-synchronized tracking input)."""
-        inp = self._inp if inp is None else inp
+        the user's synchronization and minimum duration dt, or the time-synchronized
+        tracking input with minimum duration ``horizon``)."""
+        inp.current_position = self._q
+        inp.current_velocity = self._qd
+        inp.current_acceleration = self._qdd
         inp.target_position = target[0]
         inp.target_velocity = target[1]
         inp.target_acceleration = target[2]
-        inp.minimum_duration = min_duration
         self._otg.calculate(inp, self._traj)
         return self._traj
 
@@ -1095,20 +1168,22 @@ class RuckigStreamer:
         inp.target_velocity = [target[1][j]]
         inp.target_acceleration = [target[2][j]]
         inp.minimum_duration = min_duration
-        self._j_otg[j].calculate(inp, self._j_traj[j])
-        return self._j_traj[j]
+        traj = self._j_traj[j]
+        self._j_otg[j].calculate(inp, traj)
+        return traj
 
     def _advance(self, p: list, v: list, a: list, status: StreamStatus,
                  clamped: np.ndarray) -> StreamState:
         """Pass the proposed next state (lists of d floats, modified in place) through the
         position guard (layer 2) and make it the current state."""
         guarded = self._no
-        tol = self.guard_tolerance
-        zone = self._guard_zone
-        for i, (lo, hi, amax, jmax) in enumerate(self._lims):
-            if p[i] - lo >= zone[i] and hi - p[i] >= zone[i]:
+        i = 0
+        for pi, (lo, hi, amax, jmax), z in zip(p, self._lims, self._guard_zone):
+            if pi - lo >= z and hi - pi >= z:
+                i += 1
                 continue
-            b_lo, b_hi, _, _, _ = _brake_joint(p[i], v[i], a[i], amax, jmax, 0.0)
+            tol = self.guard_tolerance
+            b_lo, b_hi, _, _, _ = _brake_joint(pi, v[i], a[i], amax, jmax, 0.0)
             if b_lo < lo - tol or b_hi > hi + tol:
                 # brake from the current state instead (within limits by the invariant)
                 _, _, p[i], v[i], a[i] = _brake_joint(self._q[i], self._qd[i], self._qdd[i],
@@ -1116,21 +1191,19 @@ class RuckigStreamer:
                 if guarded is self._no:
                     guarded = self._no.copy()
                 guarded[i] = True
+            i += 1
         if guarded is not self._no:
-            status = StreamStatus.POSITION_GUARD
+            status = _GUARD
             if self._appr is not None:  # guarded joints no longer follow their committed plan
                 joints = [j for j in self._appr[3] if not guarded[j]]
                 self._appr = self._appr[:3] + (joints,) if joints else None
-        self._set_state(p, v, a)
-        return StreamState(np.array(p), np.array(v), np.array(a), status, guarded, clamped)
+        self._q, self._qd, self._qdd = p, v, a
+        return _tuple_new(StreamState, (np.array(p), np.array(v), np.array(a), status, guarded, clamped, ""))
 
     def _set_state(self, q: list, qd: list, qdd: list):
-        """Current state as lists of floats (cheaper than numpy for d <= 7 in the tick)."""
+        """Current state as lists of floats (cheaper than numpy for d <= 7 in the tick); the
+        planners' inputs take it when they plan."""
         self._q, self._qd, self._qdd = q, qd, qdd
-        for inp in (self._inp, self._inp_sync):
-            inp.current_position = q
-            inp.current_velocity = qd
-            inp.current_acceleration = qdd
 
     def _brake_tick(self, status: StreamStatus, clamped=None, error: str = "") -> StreamState:
         """One control period of every joint's brake from the current state."""
@@ -1141,8 +1214,8 @@ class RuckigStreamer:
             self._set_state(q, qd, qdd)
         self._appr = None
         moving = any(self._qd) or any(self._qdd)
-        if status == StreamStatus.STOPPING and not moving:
-            status = StreamStatus.STOPPED
+        if status == _STOPPING and not moving:
+            status = _STOPPED
         clamped = self._no.copy() if clamped is None else clamped
         return StreamState(np.array(self._q), np.array(self._qd), np.array(self._qdd), status,
                            np.ones(self.n_joints, dtype=bool), clamped, error)
