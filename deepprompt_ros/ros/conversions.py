@@ -609,6 +609,14 @@ class JointStateSerializer:
             self._nsec = offset(np.uint32(0x2B4D6F13).tobytes())
         self._buf = self._template.copy()
         self._n = n
+        if not self._fallback:
+            # writable little-endian views of the numbers in the message buffer: each call
+            # writes through them (no temporary arrays)
+            b = self._buf
+            self._pos_view = np.frombuffer(b, dtype="<f8", count=n, offset=self._p)
+            self._vel_view = np.frombuffer(b, dtype="<f8", count=n, offset=self._v)
+            self._sec_view = np.frombuffer(b, dtype="<i4", count=1, offset=self._sec)
+            self._nsec_view = np.frombuffer(b, dtype="<u4", count=1, offset=self._nsec)
 
     def __call__(self, position, velocity, stamp_ns: int = 0) -> bytes:
         """CDR bytes of a JointState with these positions / velocities (n,) and header.stamp."""
@@ -616,10 +624,20 @@ class JointStateSerializer:
             from rclpy.serialization import serialize_message
 
             return serialize_message(arrays_to_joint_state(self.names, position, velocity, stamp_ns=stamp_ns))
-        b, n = self._buf, self._n
-        b[self._p:self._p + 8 * n] = np.asarray(position, dtype="<f8").view(np.uint8)
-        b[self._v:self._v + 8 * n] = np.asarray(velocity, dtype="<f8").view(np.uint8)
+        pos, vel = self._pos_view, self._vel_view
+        if type(position) is not np.ndarray or position.shape != pos.shape:
+            self._check_shape("position", position)
+        if type(velocity) is not np.ndarray or velocity.shape != vel.shape:
+            self._check_shape("velocity", velocity)
+        pos[:] = position
+        vel[:] = velocity
         sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
-        b[self._sec:self._sec + 4] = np.array([sec], dtype="<i4").view(np.uint8)
-        b[self._nsec:self._nsec + 4] = np.array([nsec], dtype="<u4").view(np.uint8)
-        return b.tobytes()
+        self._sec_view[0] = sec
+        self._nsec_view[0] = nsec
+        return self._buf.tobytes()
+
+    def _check_shape(self, label: str, values) -> None:
+        shape = np.shape(values)
+        if shape != (self._n,):
+            raise ValueError(f"{label} has shape {shape}; expected ({self._n},), one value per joint: "
+                             f"{', '.join(self.names)}")
