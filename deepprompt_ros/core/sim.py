@@ -493,7 +493,7 @@ class Simulation:
         qd = np.array([s[1] for s in states])
         motor = np.array([s[3] for s in states])
         effort = motor + self._tau_cmd if self._kinesthetic else motor
-        self._q_read = [s[0] for s in states]
+        self._q_read = q.tolist()
         return JointState(q, qd, effort)
 
     def _velocity_command(self, q: list) -> list:
