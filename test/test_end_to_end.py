@@ -10,15 +10,12 @@ import time
 
 import numpy as np
 import pytest
-import rclpy
 import yaml
 from deepprompt_msgs.action import Execute
 from deepprompt_msgs.msg import ResultCode
 from deepprompt_msgs.srv import Condition, StartRecording, StopRecording
 from geometry_msgs.msg import PointStamped
 from rclpy.action import ActionClient
-from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 from std_srvs.srv import SetBool, Trigger
 
@@ -26,7 +23,7 @@ from deepprompt_ros.core.dataset import load_dataset
 from deepprompt_ros.core.robots import RobotKinematics, load_robot
 from deepprompt_ros.core.train import TrainConfig, train
 from deepprompt_ros.ros import conversions as conv
-from deepprompt_ros.ros.testing import NodeProcess, RosTestClient, isolated_ros_env
+from deepprompt_ros.ros.testing import JointStateTap, NodeProcess, RosTestClient, isolated_ros_env
 
 SPEC = load_robot("gen3_lite")
 KIN = RobotKinematics(SPEC)
@@ -79,9 +76,6 @@ def client(env, sim):
         assert c.wait_for_messages(c.joint_states, 1, timeout=30.0), sim.output_tail()
         yield c
 
-
-def _q(msg) -> np.ndarray:
-    return conv.reorder_joints(msg.name, msg.position, SPEC.joint_names)
 
 
 def _sim_time(client) -> float:
@@ -185,38 +179,6 @@ def test_recorded_demonstrations_are_valid_and_moved(demos_dir, dataset):
     assert spread > 0.04  # varied targets: a distribution to learn, not one motion
 
 
-class JointStateTap:
-    """Every joint_states message, taken in batches from a subscription of a node no executor spins.
-
-    Dispatching each message through an rclpy executor in this process fell behind the 1 kHz topic
-    on the loaded 2-core machine (it received 1.1 s of simulated time in 10 s); taking the queued
-    messages (raw, deserialized afterwards) every few tens of ms keeps up.
-    """
-
-    def __init__(self, client, topic: str = "joint_states", depth: int = 5000):
-        self.node = rclpy.create_node("joint_state_tap", context=client.context, enable_rosout=False,
-                                      start_parameter_services=False)
-        self.sub = self.node.create_subscription(
-            JointState, topic, lambda m: None, QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE),
-            raw=True)
-        self.raw: list[bytes] = []
-
-    def take(self) -> None:
-        """Move the queued messages into :attr:`raw`."""
-        with self.sub.handle:
-            while (taken := self.sub.handle.take_message(self.sub.msg_type, True)) is not None:
-                self.raw.append(taken[0])
-
-    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
-        """Header stamps (N,) in ns and positions (N, 6) in the robot's joint order."""
-        msgs = [deserialize_message(b, JointState) for b in self.raw]
-        return (np.array([conv.stamp_to_ns(m.header.stamp) for m in msgs], dtype=np.int64),
-                np.array([_q(m) for m in msgs]).reshape(-1, 6))
-
-    def close(self) -> None:
-        self.node.destroy_node()
-
-
 def _condition(client, **kw):
     r = client.call(Condition, f"{SRV}/condition", Condition.Request(primitive="guided", **kw), timeout=20.0)
     assert r.success, r.message
@@ -279,7 +241,7 @@ def test_learned_primitive_passes_through_a_via_point_on_the_arm(env, tmp, sim, 
             tap.close()
             ac.destroy()
 
-    stamps, q = tap.arrays()
+    stamps, q, _ = tap.arrays(SPEC.joint_names)
     steps = np.diff(stamps) / 1e6  # ms of simulated time between consecutive messages (1 = none lost)
     phases = [f.phase for f in feedback]
     assert len(phases) > 20 and np.all(np.diff(phases) >= -1e-12) and phases[-1] > 0.9, phases

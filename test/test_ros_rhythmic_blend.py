@@ -12,55 +12,19 @@ import time
 
 import numpy as np
 import pytest
-import rclpy
 import yaml
 from deepprompt_msgs.action import Execute
 from deepprompt_msgs.msg import Context, ResultCode
 from deepprompt_msgs.srv import Blend, Condition, SetPhaseRate
 from rclpy.action import ActionClient
-from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rclpy.serialization import deserialize_message
-from sensor_msgs.msg import JointState
 
 from deepprompt_ros.core import server_logic as sl
 from deepprompt_ros.core.robots import load_robot
 from deepprompt_ros.core.streaming import check_limits
 from deepprompt_ros.ros import conversions as conv
-from deepprompt_ros.ros.testing import NodeProcess, RosTestClient, isolated_ros_env
+from deepprompt_ros.ros.testing import JointStateTap, NodeProcess, RosTestClient, isolated_ros_env
 
 SRV = "/primitive_server"
-
-
-class Tap:
-    """Every message of a 500-1000 Hz JointState topic, taken in batches from a subscription of a
-    node no executor spins (per-message executor dispatch falls behind on a loaded 2-core machine;
-    same approach as JointStateTap in test_end_to_end.py)."""
-
-    def __init__(self, client, topic: str, depth: int = 10000):
-        self.node = rclpy.create_node(f"tap_{topic.strip('/').replace('/', '_')}", context=client.context,
-                                      enable_rosout=False, start_parameter_services=False)
-        self.sub = self.node.create_subscription(
-            JointState, topic, lambda m: None, QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE),
-            raw=True)
-        self.raw: list[bytes] = []
-
-    def take(self) -> None:
-        with self.sub.handle:
-            while (taken := self.sub.handle.take_message(self.sub.msg_type, True)) is not None:
-                self.raw.append(taken[0])
-
-    def arrays(self, names) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Stamps (N,) ns, positions (N, d) and velocities (N, d) in the order of ``names``."""
-        msgs = [deserialize_message(b, JointState) for b in self.raw]
-        d = len(names)
-        stamps = np.array([conv.stamp_to_ns(m.header.stamp) for m in msgs], dtype=np.int64)
-        q = np.array([conv.reorder_joints(m.name, m.position, names) for m in msgs]).reshape(-1, d)
-        qd = np.array([conv.reorder_joints(m.name, m.velocity, names) if len(m.velocity) else np.full(d, np.nan)
-                       for m in msgs]).reshape(-1, d)
-        return stamps, q, qd
-
-    def close(self) -> None:
-        self.node.destroy_node()
 
 
 def model_path(name: str) -> str:
@@ -106,8 +70,8 @@ class Rig:
             "stale_timeout": 1.0})  # on a loaded 2-core machine the Python sim can pause > 0.5 s
         self.client = RosTestClient(self.env)
         self.ac = ActionClient(self.client.node, Execute, f"{SRV}/execute")
-        self.cmd = Tap(self.client, "joint_command")
-        self.states = Tap(self.client, "joint_states")
+        self.cmd = JointStateTap(self.client, "joint_command")
+        self.states = JointStateTap(self.client, "joint_states")
 
     def wait_ready(self):
         server = self.procs["server"]

@@ -53,6 +53,7 @@ __all__ = [
     "Received",
     "MessageLog",
     "RosTestClient",
+    "JointStateTap",
 ]
 
 #: Environment variables that select the ROS 2 network and logging of a process.
@@ -439,3 +440,52 @@ class RosTestClient:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class JointStateTap:
+    """Every message of a high-rate (500-1000 Hz) sensor_msgs/JointState topic, taken in batches
+    from a subscription of a node that no executor spins.
+
+    Dispatching each message through an rclpy executor in the test process falls behind a 1 kHz
+    topic on a loaded 2-core machine; taking the queued messages (serialized, deserialized in
+    :meth:`arrays`) every few tens of ms keeps up. Call :meth:`take` often enough that fewer than
+    ``depth`` messages queue up between calls.
+    """
+
+    def __init__(self, client: "RosTestClient", topic: str = "joint_states", depth: int = 10000):
+        import rclpy
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import JointState
+
+        self.node = rclpy.create_node(f"tap_{topic.strip('/').replace('/', '_')}", context=client.context,
+                                      enable_rosout=False, start_parameter_services=False)
+        self.sub = self.node.create_subscription(
+            JointState, topic, lambda m: None, QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE),
+            raw=True)
+        self.raw: list[bytes] = []
+
+    def take(self) -> None:
+        """Move the queued messages into :attr:`raw`."""
+        with self.sub.handle:
+            while (taken := self.sub.handle.take_message(self.sub.msg_type, True)) is not None:
+                self.raw.append(taken[0])
+
+    def arrays(self, names: Sequence[str]):
+        """Header stamps (N,) in ns, positions (N, d) and velocities (N, d; NaN where a message has
+        none) in the order of ``names``."""
+        import numpy as np
+        from rclpy.serialization import deserialize_message
+        from sensor_msgs.msg import JointState
+
+        from . import conversions as conv
+
+        msgs = [deserialize_message(b, JointState) for b in self.raw]
+        d = len(names)
+        stamps = np.array([conv.stamp_to_ns(m.header.stamp) for m in msgs], dtype=np.int64)
+        q = np.array([conv.reorder_joints(m.name, m.position, names) for m in msgs]).reshape(-1, d)
+        qd = np.array([conv.reorder_joints(m.name, m.velocity, names) if len(m.velocity) else np.full(d, np.nan)
+                       for m in msgs]).reshape(-1, d)
+        return stamps, q, qd
+
+    def close(self) -> None:
+        self.node.destroy_node()
