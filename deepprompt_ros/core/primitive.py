@@ -160,7 +160,6 @@ class DeepProMP:
         # decode() fast path: contiguous transposed weights, the output layer with the
         # de-normalization folded in, and the phase part of layer 1 cached per phase grid
         self._W1zT = np.ascontiguousarray(self._dec_W1z.T)
-        self._W2T = np.ascontiguousarray(self._dec.W[1].T)
         self._W3T = np.ascontiguousarray(self._dec.W[2].T * self._y_std)
         self._b3 = self._dec.b[2] * self._y_std + self._y_mean
         self._pre_x_cache: dict[bytes, np.ndarray] = {}
@@ -367,7 +366,11 @@ class DeepProMP:
         else:
             h = pre_x[None] + (z @ self._W1zT)[:, None, :]
         np.maximum(h, 0.0, out=h)
-        h = h @ self._W2T
+        return self._decode_hidden(h)
+
+    def _decode_hidden(self, h1: np.ndarray) -> np.ndarray:
+        """Decoder layers 2 and 3 from the first hidden layer's activations (..., h) → joint units (..., d)."""
+        h = h1 @ self._dec.WT[1]
         h += self._dec.b[1]
         np.maximum(h, 0.0, out=h)
         out = h @ self._W3T
@@ -390,9 +393,9 @@ class DeepProMP:
 
     def decode_per_phase(self, z_x: np.ndarray, x: np.ndarray) -> np.ndarray:
         """Decode a latent that varies with phase (blending): z_x (T, k), x (T,) → (T, d)."""
-        pre = self._phase_feats(x) @ self._dec_W1x.T + self._dec.b[0] + z_x @ self._dec_W1z.T
-        h = np.maximum(np.maximum(pre, 0.0) @ self._dec.W[1].T + self._dec.b[1], 0.0)
-        return (h @ self._dec.W[2].T + self._dec.b[2]) * self._y_std + self._y_mean
+        h = self._layer1_phase(x) + z_x @ self._W1zT
+        np.maximum(h, 0.0, out=h)
+        return self._decode_hidden(h)
 
     def decoder_jacobian(self, z: np.ndarray, x: np.ndarray, smoothing: float | None = None):
         """μ_y(z, x_i) and ∂μ_y/∂z at each phase, joint units.
@@ -416,10 +419,10 @@ class DeepProMP:
             b = float(smoothing)
             act = lambda h: np.logaddexp(0.0, b * h) / b  # noqa: E731
             dact = lambda h: 0.5 * (1.0 + np.tanh(0.5 * b * h))  # noqa: E731  (= sigmoid(βh))
-        zw = z @ self._dec_W1z.T  # (h,) or (K, h)
-        pre1 = self._phase_feats(x) @ self._dec_W1x.T + self._dec.b[0] + zw[..., None, :]  # (..., n, h)
-        pre2 = act(pre1) @ self._dec.W[1].T + self._dec.b[1]
-        y = (act(pre2) @ self._dec.W[2].T + self._dec.b[2]) * self._y_std + self._y_mean
+        zw = z @ self._W1zT  # (h,) or (K, h)
+        pre1 = self._layer1_phase(x) + zw[..., None, :]  # (..., n, h)
+        pre2 = act(pre1) @ self._dec.WT[1] + self._dec.b[1]
+        y = act(pre2) @ self._W3T + self._b3
         # chain rule multiplied from the output side (d < k < h): per phase d·h² + d·h·k flops
         # instead of h²·k + d·h·k
         c = self._dec.W[2][..., None, :, :] * dact(pre2)[..., None, :]  # (..., n, d, h)
