@@ -124,3 +124,5 @@ def test_joint_state_serializer_matches_a_built_message():
         np.testing.assert_array_equal(m.position, q)
         np.testing.assert_array_equal(m.velocity, qd)
         assert (m.header.stamp.sec, m.header.stamp.nanosec) == (1_700_000_000, 123_456_789)
+    with pytest.raises(ValueError, match="effort=True"):
+        ser(q, qd, 0, effort=np.zeros(6))  # this serializer carries no efforts

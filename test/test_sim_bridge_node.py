@@ -15,8 +15,7 @@ from std_srvs.srv import SetBool, Trigger
 
 from deepprompt_ros.core.robots import RobotKinematics, load_robot
 from deepprompt_ros.ros import conversions as conv
-from deepprompt_ros.ros.sim_bridge import (OBJECT_FIELDS, PARAMETERS, ClockSerializer, CommandReader,
-                                          StateSerializer)
+from deepprompt_ros.ros.sim_bridge import OBJECT_FIELDS, PARAMETERS, ClockSerializer, CommandReader
 from deepprompt_ros.ros.testing import NodeProcess, RosTestClient, isolated_ros_env
 
 CONFIG = pathlib.Path(__file__).resolve().parents[1] / "config" / "sim_bridge.yaml"
@@ -134,10 +133,10 @@ def test_serialized_joint_states_clock_and_commands_match_the_messages():
     from rclpy.serialization import deserialize_message, serialize_message
 
     rng = np.random.default_rng(3)
-    ser = StateSerializer(SPEC.joint_names)
+    ser = conv.JointStateSerializer(SPEC.joint_names, effort=True)
     for stamp in (0, 1_795_000_000_123_456_789, 2**31 * 10**9 - 1):
         q, qd, eff = rng.normal(size=(3, 6))
-        m = deserialize_message(ser(stamp, q, qd, eff), JointState)
+        m = deserialize_message(ser(q, qd, stamp, eff), JointState)
         assert conv.stamp_to_ns(m.header.stamp) == stamp and tuple(m.name) == SPEC.joint_names
         np.testing.assert_array_equal(m.position, q)
         np.testing.assert_array_equal(m.velocity, qd)

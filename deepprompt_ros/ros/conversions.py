@@ -579,19 +579,24 @@ class JointStateSerializer:
     ----------
     names : sequence of str, length n
     frame_id : str
+    effort : bool
+        Also carry efforts (n,) — a measured state — instead of an empty effort field.
     """
 
-    def __init__(self, names: Sequence[str], frame_id: str = ""):
+    def __init__(self, names: Sequence[str], frame_id: str = "", effort: bool = False):
         from rclpy.serialization import serialize_message
 
         n = len(names)
         self.names = tuple(str(x) for x in names)
         sent_p = [1.0e300 + 1.0e285 * (i + 1) for i in range(n)]
         sent_v = [-1.0e300 - 1.0e285 * (i + 1) for i in range(n)]
-        msg = JointState(name=list(self.names), position=sent_p, velocity=sent_v)
+        sent_e = [0.5e300 + 1.0e285 * (i + 1) for i in range(n)] if effort else []
+        msg = JointState(name=list(self.names), position=sent_p, velocity=sent_v, effort=sent_e)
         msg.header.frame_id = frame_id
         msg.header.stamp = Time(sec=0x5A3C2E1F, nanosec=0x2B4D6F13)
         data = serialize_message(msg)
+        self._with_effort = bool(effort)
+        self._eff_view = None
         self._fallback = data[:2] != b"\x00\x01"  # not little-endian CDR: build messages instead
         self._template = np.frombuffer(data, dtype=np.uint8).copy()
         if not self._fallback:
@@ -605,6 +610,7 @@ class JointStateSerializer:
 
             self._p = offset(np.float64(sent_p[0]).tobytes())
             self._v = offset(np.float64(sent_v[0]).tobytes())
+            self._e = offset(np.float64(sent_e[0]).tobytes()) if effort else None
             self._sec = offset(np.int32(0x5A3C2E1F).tobytes())
             self._nsec = offset(np.uint32(0x2B4D6F13).tobytes())
         self._buf = self._template.copy()
@@ -615,15 +621,20 @@ class JointStateSerializer:
             b = self._buf
             self._pos_view = np.frombuffer(b, dtype="<f8", count=n, offset=self._p)
             self._vel_view = np.frombuffer(b, dtype="<f8", count=n, offset=self._v)
+            if effort:
+                self._eff_view = np.frombuffer(b, dtype="<f8", count=n, offset=self._e)
             self._sec_view = np.frombuffer(b, dtype="<i4", count=1, offset=self._sec)
             self._nsec_view = np.frombuffer(b, dtype="<u4", count=1, offset=self._nsec)
 
-    def __call__(self, position, velocity, stamp_ns: int = 0) -> bytes:
-        """CDR bytes of a JointState with these positions / velocities (n,) and header.stamp."""
+    def __call__(self, position, velocity, stamp_ns: int = 0, effort=None) -> bytes:
+        """CDR bytes of a JointState with these positions / velocities (n,) and header.stamp (and the
+        efforts (n,), required exactly when the serializer was made with ``effort=True``)."""
+        if (effort is not None) != self._with_effort:
+            raise ValueError("efforts are given exactly when the serializer was made with effort=True")
         if self._fallback:
             from rclpy.serialization import serialize_message
 
-            return serialize_message(arrays_to_joint_state(self.names, position, velocity, stamp_ns=stamp_ns))
+            return serialize_message(arrays_to_joint_state(self.names, position, velocity, effort, stamp_ns=stamp_ns))
         pos, vel = self._pos_view, self._vel_view
         if type(position) is not np.ndarray or position.shape != pos.shape:
             self._check_shape("position", position)
@@ -631,6 +642,10 @@ class JointStateSerializer:
             self._check_shape("velocity", velocity)
         pos[:] = position
         vel[:] = velocity
+        if effort is not None:
+            if type(effort) is not np.ndarray or effort.shape != pos.shape:
+                self._check_shape("effort", effort)
+            self._eff_view[:] = effort
         sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
         self._sec_view[0] = sec
         self._nsec_view[0] = nsec
