@@ -57,7 +57,7 @@ from deepprompt_ros.core.recording import (
     validate_demo_name,
 )
 from deepprompt_ros.ros import conversions as conv
-from deepprompt_ros.ros.parameters import ConfigError, ParamSpec, declare
+from deepprompt_ros.ros.parameters import ConfigError, ParamSpec, declare_all
 
 __all__ = ["DemoRecorder", "PARAMETERS", "main"]
 
@@ -90,10 +90,6 @@ PARAMETERS = (
 
 _CHOICES = {"context_pose_fields": ("position", "pose"), "bag_compression": ("zstd", "lz4", "none"),
             "phase_type": ("linear", "rhythmic")}
-
-
-def _declare(node: Node, spec: ParamSpec):
-    return declare(node, spec, choices=_CHOICES.get(spec.name))
 
 
 def _unused(*_args) -> None:
@@ -138,12 +134,7 @@ class DemoRecorder(Node):
 
     def __init__(self, **node_kwargs):
         super().__init__("demo_recorder", **node_kwargs)
-        p, errors = {}, []
-        for spec in PARAMETERS:  # declare all, then report every bad value at once
-            try:
-                p[spec.name] = _declare(self, spec)
-            except ConfigError as exc:
-                errors.append(str(exc))
+        p, errors = declare_all(self, PARAMETERS, _CHOICES)  # every bad value is reported at once
         try:
             self._default_specs = [parse_context_spec(s) for s in p.get("context_topics", [])]
         except RecordingError as exc:

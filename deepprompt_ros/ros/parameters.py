@@ -3,12 +3,12 @@ from which the YAML files and README tables are checked). Shared by sim_bridge a
 from __future__ import annotations
 
 import math
-from typing import Any, NamedTuple, Sequence
+from typing import Any, Mapping, NamedTuple, Sequence
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.node import Node
 
-__all__ = ["ParamSpec", "ConfigError", "declare"]
+__all__ = ["ParamSpec", "ConfigError", "declare", "declare_all"]
 
 
 class ParamSpec(NamedTuple):
@@ -77,3 +77,17 @@ def declare(node: Node, spec: ParamSpec, name: str | None = None, choices: Seque
     if choices is not None and value not in choices:
         raise ConfigError(f"parameter '{name}' = {value!r}; expected one of {tuple(choices)}")
     return value
+
+
+def declare_all(node: Node, specs: Sequence[ParamSpec],
+                choices: Mapping[str, Sequence[Any]] | None = None) -> tuple[dict, list[str]]:
+    """Declare every parameter of ``specs`` (``choices``: allowed values by parameter name); returns
+    (name -> value of the valid ones, the error message of each bad one), so that a node reports
+    every bad value at once."""
+    values, errors = {}, []
+    for spec in specs:
+        try:
+            values[spec.name] = declare(node, spec, choices=(choices or {}).get(spec.name))
+        except ConfigError as exc:
+            errors.append(str(exc))
+    return values, errors

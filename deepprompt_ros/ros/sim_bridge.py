@@ -69,7 +69,7 @@ from std_srvs.srv import SetBool, Trigger
 
 from deepprompt_ros.core.sim import SHAPES, CameraPose, Simulation
 from deepprompt_ros.ros import conversions as conv
-from deepprompt_ros.ros.parameters import ConfigError, ParamSpec
+from deepprompt_ros.ros.parameters import ConfigError, ParamSpec, declare_all
 from deepprompt_ros.ros.parameters import declare as _declare
 
 __all__ = ["SimBridge", "PARAMETERS", "main"]
@@ -249,12 +249,7 @@ class SimBridge(Node):
 
     def __init__(self, **node_kwargs):
         super().__init__("sim_bridge", **node_kwargs)
-        p, errors = {}, []
-        for spec in PARAMETERS:  # declare all, then report every bad value at once
-            try:
-                p[spec.name] = _declare(self, spec)
-            except ConfigError as exc:
-                errors.append(str(exc))
+        p, errors = declare_all(self, PARAMETERS)  # every bad value is reported at once
         if errors:
             raise ConfigError("; ".join(errors))
         self._p = p
