@@ -41,6 +41,7 @@ from .dataset import DatasetError, DemoDataset, builtin_dataset, load_dataset
 from .model import DeepProMPNet, ModelConfig, bayesian_aggregate, gaussian_kl
 
 OBJECTIVES = ("paper", "np")
+CONSISTENCY_ENCODER = ("none", "coverage", "all")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,8 +68,10 @@ class TrainConfig:
     low_info_fraction: float = 0.2
     consistency_weight: float = 0.0
     prior_kl_weight: float = 0.0
+    aggregate_prior_weight: float = 0.0
     consistency_tol: float = 0.15
     consistency_samples: int = 8
+    consistency_encoder: str = "none"
     n_val: int = 0  # 0 → 10 % of the demonstrations (at least 1)
     val_every: int = 250
     val_via_points: int = 5
@@ -81,8 +84,12 @@ class TrainConfig:
             (self.latent_dim >= 1 and self.hidden >= 1, "latent_dim and hidden must be >= 1"),
             (self.sigma_y > 0 and self.var_floor > 0, "sigma_y and var_floor must be > 0"),
             (self.beta >= 0, f"beta must be >= 0, got {self.beta}"),
+            (self.prior_kl_weight >= 0 and self.aggregate_prior_weight >= 0,
+             "prior_kl_weight and aggregate_prior_weight must be >= 0"),
             (self.consistency_weight >= 0 and self.consistency_tol > 0,
              "consistency_weight must be >= 0 and consistency_tol > 0"),
+            (self.consistency_encoder in CONSISTENCY_ENCODER,
+             f"consistency_encoder must be one of {CONSISTENCY_ENCODER}, got '{self.consistency_encoder}'"),
             (self.lr > 0, f"lr must be > 0, got {self.lr}"),
             (self.batch_size >= 1 and self.steps >= 1, "batch_size and steps must be >= 1"),
             (self.n_points >= 2, f"n_points must be >= 2, got {self.n_points}"),
@@ -287,6 +294,25 @@ def consistent_demos(cfg: TrainConfig, data: TensorData, idx, kinds, w_sub) -> t
     return ok | torch.eye(b, dtype=torch.bool)
 
 
+def aggregate_prior_kl(mu: torch.Tensor, var: torch.Tensor) -> torch.Tensor:
+    """KL(N(m, C) ‖ N(0, I)) where (m, C) are the moments of the mixture (1/B) Σ_b N(μ_b, diag σ²_b)
+    (the batch's aggregate posterior): m = mean μ_b, C = Cov(μ_b) + mean diag σ²_b.
+
+    Parameters
+    ----------
+    mu, var : tensor, shape (B, k)
+
+    Returns
+    -------
+    tensor, scalar (0 exactly when the mixture has the prior's mean and covariance)
+    """
+    m = mu.mean(0)
+    d = mu - m
+    cov = d.T @ d / mu.shape[0] + torch.diag(var.mean(0))
+    k = mu.shape[1]
+    return 0.5 * (torch.diagonal(cov).sum() + m @ m - k - torch.logdet(cov))
+
+
 def loss_fn(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, idx, gen, beta: float):
     """Negative ELBO per trajectory (mean over the batch) plus the sample-consistency term.
 
@@ -312,22 +338,36 @@ def loss_fn(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, idx, gen, bet
     y_hat = net.decode(z, data.x)
     nll = 0.5 * ((y - y_hat) ** 2).sum((1, 2)) / cfg.sigma_y ** 2
     loss = nll + beta * kl
+    if cfg.objective == "np" and cfg.aggregate_prior_weight > 0:
+        # The NP KL makes q(z | subset) the moment match of the posteriors q(z | all) of the demos
+        # that agree with the subset; for a subset that agrees with every demo that is the moment
+        # match of the whole cloud. Asking that cloud to have the prior's moments makes the
+        # posterior of uninformative via-points the prior itself (wide), instead of a narrow
+        # Gaussian between the modes. Added per trajectory so its weight is comparable to β.
+        loss = loss + beta * cfg.aggregate_prior_weight * aggregate_prior_kl(mu_a, var_a)
     cons = torch.zeros(())
     if cfg.consistency_weight > 0:
         # Sample consistency (Chamfer distance between sets): the M trajectories decoded from
         # z ~ q(z | subset) and the demonstrations of the batch that agree with the subset must
         # match as sets — every sample near SOME consistent demo (no sample between modes) and
-        # every consistent demo near some sample (no mode dropped). z is detached: only the KL
-        # term shapes q(z | subset); this term shapes the decoder.
+        # every consistent demo near some sample (no mode dropped). ``consistency_encoder`` says
+        # which part reaches the encoder through z: "none" (only the KL shapes q(z | subset); this
+        # term shapes the decoder), "coverage" (the coverage part widens q(z | subset) until its
+        # samples reach every consistent mode; the precision part, which any single mode
+        # satisfies, stays a decoder term), "all".
         m = cfg.consistency_samples
         eps = torch.randn((mu_s.shape[0], m, mu_s.shape[1]), generator=gen)
-        z_s = (mu_s.unsqueeze(1) + eps * var_s.sqrt().unsqueeze(1)).detach()  # (B, M, k)
-        y_s = net.decode(z_s.reshape(-1, z_s.shape[-1]), data.x).reshape(z_s.shape[0], m, *y.shape[1:])
-        err = ((y_s.unsqueeze(2) - y.unsqueeze(0).unsqueeze(0)) ** 2).sum((3, 4))  # (B_i, M, B_j)
+        z_s = mu_s.unsqueeze(1) + eps * var_s.sqrt().unsqueeze(1)  # (B, M, k)
         ok = consistent_demos(cfg, data, idx, kinds, w_sub).unsqueeze(1)  # (B_i, 1, B_j)
+
+        def sample_errors(z):  # (B_i, M, B_j): squared distance of every sample to every demo
+            y_s = net.decode(z.reshape(-1, z.shape[-1]), data.x).reshape(z.shape[0], m, *y.shape[1:])
+            return ((y_s.unsqueeze(2) - y.unsqueeze(0).unsqueeze(0)) ** 2).sum((3, 4))
+
+        err = sample_errors(z_s if cfg.consistency_encoder == "all" else z_s.detach())
         inf = torch.full((), float("inf"))
         precision = torch.where(ok, err, inf).amin(2).mean(1)  # nearest consistent demo per sample
-        cover = err.amin(1)  # (B_i, B_j): nearest sample per demo
+        cover = (sample_errors(z_s) if cfg.consistency_encoder == "coverage" else err).amin(1)  # nearest sample per demo
         okf = ok.squeeze(1).float()
         coverage = (cover * okf).sum(1) / okf.sum(1)
         cons = 0.5 * (precision + coverage) / cfg.sigma_y ** 2
