@@ -57,6 +57,8 @@ class TrainConfig:
     basis_width: float = 1.0
     residual_scale: float = 1.0
     basis_init: str = "random"
+    basis_lr_scale: float = 1.0
+    basis_cov_reg: float = 0.0
     objective: str = "np"
     beta: float = 1.0
     kl_anneal_steps: int = 1000
@@ -98,6 +100,8 @@ class TrainConfig:
             (self.val_every >= 1 and self.threads >= 1, "val_every and threads must be >= 1"),
             (self.decoder_basis == 0 or self.decoder_basis >= 2, "decoder_basis must be 0 or >= 2"),
             (self.basis_width > 0 and self.residual_scale >= 0, "basis_width must be > 0 and residual_scale >= 0"),
+            (self.basis_cov_reg >= 0, f"basis_cov_reg must be >= 0, got {self.basis_cov_reg}"),
+            (self.basis_lr_scale >= 0, f"basis_lr_scale must be >= 0, got {self.basis_lr_scale}"),
             (self.basis_init in BASIS_INITS, f"basis_init must be one of {BASIS_INITS}, got '{self.basis_init}'"),
         ]
         for ok, msg in checks:
@@ -380,12 +384,14 @@ def validation_mse(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, norm: 
 
 
 @torch.no_grad()
-def init_basis_pca(net: DeepProMPNet, data: TensorData, ridge: float = 1e-6) -> np.ndarray:
+def init_basis_pca(net: DeepProMPNet, data: TensorData, cov_reg: float = 0.0, ridge: float = 1e-6) -> np.ndarray:
     """Initialize the decoder's linear part Φ(x)(b + A z) as the PPCA of the training demos
     (``basis_init: pca``): per demo the ridge-regression weights W_i of the basis (normalized units),
-    b = their mean, the columns of A = their top-k principal directions scaled by the standard
-    deviation along them (z ~ N(0, I) then reproduces the demos' weight covariance in those
-    directions; columns beyond the rank stay 0). Returns the singular values / √D used."""
+    b = their mean, the columns of A = the top-k eigenvectors of their covariance C + λI scaled by
+    the square root of the eigenvalue, so z ~ N(0, I) reproduces C + λI in those k directions.
+    λ = ``cov_reg`` · mean(diag C) (ProMP's regularizer, :meth:`core.promp.ProMP.fit`, uses 0.05):
+    it gives the k − rank(C) directions beyond the demos' span a small variance instead of none.
+    With λ = 0 those columns stay 0. Returns the standard deviations of the k columns."""
     cfg = net.cfg
     phi = net.basis_functions(data.x.double()).numpy()  # (T, n_b)
     y = data.y.double().numpy()  # (D, T, d)
@@ -394,9 +400,13 @@ def init_basis_pca(net: DeepProMPNet, data: TensorData, ridge: float = 1e-6) -> 
     w = np.linalg.solve(gram, np.einsum("tb,ntd->nbd", phi, y))  # (D, n_b, d)
     w = w.reshape(w.shape[0], -1)
     mean = w.mean(0)
-    _, sv, vt = np.linalg.svd(w - mean, full_matrices=False)
-    scale = sv / math.sqrt(max(1, w.shape[0] - 1))
+    _, sv, vt = np.linalg.svd(w - mean, full_matrices=True)  # vt: all n_b·d directions, data span first
+    eig = np.zeros(vt.shape[0])
+    eig[: sv.size] = sv ** 2 / max(1, w.shape[0] - 1)
+    eig += cov_reg * eig.sum() / eig.size
     r = min(cfg.latent_dim, vt.shape[0])
+    scale = np.zeros(cfg.latent_dim)
+    scale[:r] = np.sqrt(eig[:r])
     a = np.zeros((w.shape[1], cfg.latent_dim))
     a[:, :r] = (vt[:r] * scale[:r, None]).T
     net.basis.bias.copy_(torch.as_tensor(mean, dtype=torch.float32))
@@ -428,8 +438,17 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
                        residual_scale=cfg.residual_scale)
     net = DeepProMPNet(mcfg)
     if cfg.decoder_basis and cfg.basis_init == "pca":
-        init_basis_pca(net, data)
-    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+        init_basis_pca(net, data, cfg.basis_cov_reg)
+    if cfg.decoder_basis:  # the linear part learns at lr · basis_lr_scale (0: kept as initialized)
+        rest = [p for n, p in net.named_parameters() if not n.startswith("basis.")]
+        groups = [{"params": rest}]
+        if cfg.basis_lr_scale > 0:
+            groups.append({"params": list(net.basis.parameters()), "lr": cfg.lr * cfg.basis_lr_scale})
+        else:
+            net.basis.requires_grad_(False)
+        opt = torch.optim.Adam(groups, lr=cfg.lr)
+    else:
+        opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     gen = torch.Generator().manual_seed(cfg.seed)
     history, best, best_state = [], math.inf, None
     t0 = time.perf_counter()
