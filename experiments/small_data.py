@@ -8,7 +8,16 @@ validation) and reconstruct held-out demonstrations from ``n_via`` random via-po
 ``deepprompt``           DeepProMP decoded at the posterior mean q(z | via-points)
 ``deepprompt_refined``   the same, after :meth:`DeepProMP.refine` through the via-points (executed
                          trajectory μ_y(μ̃, x))
+``deepprompt_map``       the same, after MAP refinement (:meth:`DeepProMP.refine_map`, prior ``map_prior``):
+                         the regularized least-squares latent, via-point noise f·σ_y·RMS(joint std) with the
+                         factor f chosen from ``map_noise_factors`` on the VALIDATION demos of the
+                         training split (never on the test demos)
 ``*_start``              conditioned on the start point only (x = 0)
+
+:data:`RESIDUAL_CONFIG` is the configuration :func:`run` uses (the plain decoder is run too, as the
+reference): a decoder that is a residual over a linear RBF basis, its linear part initialized as the
+PPCA of the demonstrations with ProMP's covariance regularizer and kept fixed, latent 64
+(EXPERIMENTS.md section 4 has the measurements behind each choice).
 
 Call :func:`small_data` with any :class:`TrainConfig` to measure a change of the model or its training::
 
@@ -32,9 +41,10 @@ from deepprompt_ros.core.train import TrainConfig
 from . import common
 from .common import Scale
 
-METHODS = ("promp", "deepprompt", "deepprompt_refined", "promp_start", "deepprompt_start")
+METHODS = ("promp", "deepprompt", "deepprompt_refined", "deepprompt_map", "promp_start", "deepprompt_start")
 LABELS = {"promp": "ProMP, {n} via-points", "deepprompt": "DeepProMP, {n} via-points",
-          "deepprompt_refined": "DeepProMP, {n} via-points + refinement", "promp_start": "ProMP, start point only",
+          "deepprompt_refined": "DeepProMP, {n} via-points + refinement",
+          "deepprompt_map": "DeepProMP, {n} via-points + MAP refinement", "promp_start": "ProMP, start point only",
           "deepprompt_start": "DeepProMP, start point only"}
 
 
@@ -54,6 +64,8 @@ class SmallDataResult:
     refine_reachable: list  # fraction of test demos whose via-points refinement met 1e-6 rad, per seed
     fit_s: list
     config: dict
+    map_noise_factor: list = dataclasses.field(default_factory=list)  # f chosen on the validation demos, per seed
+    map_prior: str = "standard"
 
     def stats(self) -> dict:
         return {m: dict(zip(("mean", "se"), common.mean_se(v))) for m, v in self.mse.items()}
@@ -63,6 +75,7 @@ class SmallDataResult:
         p = s["promp"]["mean"]
         return {"deepprompt/promp": s["deepprompt"]["mean"] / p,
                 "deepprompt_refined/promp": s["deepprompt_refined"]["mean"] / p,
+                "deepprompt_map/promp": s["deepprompt_map"]["mean"] / p,
                 "deepprompt_start/promp_start": s["deepprompt_start"]["mean"] / s["promp_start"]["mean"]}
 
     def to_json(self) -> dict:
@@ -73,14 +86,20 @@ class SmallDataResult:
         rows = [[LABELS[m].format(n=self.n_via), common.fmt_pm(s[m]["mean"], s[m]["se"]),
                  f"{s[m]['mean'] / s['promp' if 'start' not in m else 'promp_start']['mean']:.2f}"] for m in METHODS]
         r = self.ratios()
+        c = self.config
+        dec = (f"decoder: residual over {c['decoder_basis']} RBFs (`basis_init` {c['basis_init']}, `basis_cov_reg` "
+               f"{c['basis_cov_reg']}, `basis_lr_scale` {c['basis_lr_scale']}, `residual_scale` {c['residual_scale']})"
+               if c.get("decoder_basis") else "decoder: plain MLP")
         return (f"# Small data: {self.n_train} demonstrations of `{self.task}` ({self.n_joints} joints) ({self.n_test} held-out demos, "
                 f"{len(self.seeds)} seed(s))\n\nHeld-out reconstruction MSE (rad², mean ± standard error over "
-                f"seeds; ProMP is deterministic). DeepProMP: {self.config['steps']} updates, objective "
-                f"`{self.config['objective']}`, latent {self.config['latent_dim']}. Refinement met 1e-6 rad on "
-                f"{np.mean(self.refine_reachable):.0%} of the via-point sets.\n\n"
+                f"seeds; ProMP is deterministic). DeepProMP: {c['steps']} updates, objective "
+                f"`{c['objective']}`, latent {c['latent_dim']}, {dec}. Refinement met 1e-6 rad on "
+                f"{np.mean(self.refine_reachable):.0%} of the via-point sets. MAP refinement: prior "
+                f"`{self.map_prior}`, noise factor f = {self.map_noise_factor} (chosen on the validation demos).\n\n"
                 + common.markdown_table(["method", "MSE (rad²)", "÷ ProMP (same conditioning)"], rows)
                 + f"\nDeepProMP / ProMP: {r['deepprompt/promp']:.1f}× with {self.n_via} via-points, "
                   f"{r['deepprompt_refined/promp']:.1f}× after refinement, "
+                  f"{r['deepprompt_map/promp']:.2f}× after MAP refinement, "
                   f"{r['deepprompt_start/promp_start']:.2f}× with the start point only.\n")
 
 
@@ -105,6 +124,24 @@ def refined_mse(model: DeepProMPModel, test: DemoDataset, n_via: int, n_points: 
     return float(np.mean(after)), float(np.mean(before)), float(np.mean(ok))
 
 
+def map_mse(model: DeepProMPModel, test: DemoDataset, n_via: int, noise_factor: float, prior: str = "standard",
+            n_points: int = 100, seed: int = 0) -> float:
+    """MSE after :meth:`DeepProMP.refine_map` from the posterior q(z | via-points); the via-points of
+    :func:`refined_mse`. Via-point noise: ONE standard deviation for all joints (rad, as ProMP's
+    via-point noise), ``noise_factor`` · σ_y · RMS of the joints' normalization stds (per-joint
+    σ_y · std measured 1.12× ProMP instead of 1.0× on seed 0: it makes the small-range joints stiff)."""
+    prim = model.primitive
+    x = np.linspace(0.0, 1.0, n_points)
+    noise = noise_factor * prim.cfg.sigma_y * float(np.sqrt(np.mean(np.asarray(prim.norm.y_std, dtype=np.float64) ** 2)))
+    errs = []
+    for i, demo in enumerate(test.demos):
+        y = demo.resampled(n_points)
+        sel = np.sort(np.random.default_rng([seed, i]).choice(n_points, int(n_via), replace=False))
+        res = prim.refine_map(prim.condition(x[sel], y[sel]), x[sel], y[sel], prior=prior, noise_std=noise)
+        errs.append(float(((prim.mean_trajectory(res.latent, x) - y) ** 2).mean()))
+    return float(np.mean(errs))
+
+
 def default_data(n_train: int = 30, n_test: int = 50, task: str = "wam_reach") -> tuple[DemoDataset, DemoDataset]:
     """``n_train`` training and ``n_test`` held-out demonstrations of ``task`` without their images
     (only via-points are used): a built-in task (default: the 7-joint WAM reaching task) or a PyBullet
@@ -123,7 +160,8 @@ def default_data(n_train: int = 30, n_test: int = 50, task: str = "wam_reach") -
 
 def small_data(train_config: TrainConfig, data: tuple[DemoDataset, DemoDataset] | None = None, n_train: int = 30,
                n_test: int = 50, n_via: int = 5, seeds: Sequence[int] = (0,), task: str = "wam_reach",
-               log: Callable[[str], None] = print) -> SmallDataResult:
+               log: Callable[[str], None] = print, map_prior: str = "standard",
+               map_noise_factors: Sequence[float] = (0.25, 0.5, 1.0, 2.0)) -> SmallDataResult:
     """Train DeepProMP with ``train_config`` (its seed replaced by each of ``seeds``) and ProMP on the
     same demonstrations; measure held-out MSE with ``n_via`` via-points, with and without refinement.
 
@@ -131,11 +169,13 @@ def small_data(train_config: TrainConfig, data: tuple[DemoDataset, DemoDataset] 
     ----------
     train_config : TrainConfig for DeepProMP (steps, objective, latent size, …)
     data : (train, test) datasets; default :func:`default_data` (``n_train``, ``n_test``, ``task``)
+    map_prior, map_noise_factors : MAP refinement (row ``deepprompt_map``): its prior and the noise
+        factors f tried on the validation demos of each seed's training split (the best is used on the test demos)
     """
     train_ds, test_ds = data if data is not None else default_data(n_train, n_test, task)
     n_points = train_config.n_points
     mse = {m: [] for m in METHODS}
-    check, reach, fit_s = [], [], []
+    check, reach, fit_s, factors = [], [], [], []
     promp = ProMPModel().fit(train_ds, train_config)
     p_via = reconstruction_mse(promp, test_ds, "via_point", n_via=n_via, n_points=n_points)
     p_start = _start_only(promp, test_ds, n_points)
@@ -146,14 +186,18 @@ def small_data(train_config: TrainConfig, data: tuple[DemoDataset, DemoDataset] 
         fit_s.append(time.perf_counter() - t0)
         d_via = reconstruction_mse(model, test_ds, "via_point", n_via=n_via, n_points=n_points)
         d_ref, d_check, ok = refined_mse(model, test_ds, n_via, n_points)
-        for m, v in zip(METHODS, (p_via, d_via, d_ref, p_start, _start_only(model, test_ds, n_points))):
+        _, val_ds = train_ds.split(cfg.n_val or max(1, len(train_ds) // 10), seed=cfg.seed)  # DeepProMPModel.fit's split
+        f = min(map_noise_factors, key=lambda f: map_mse(model, val_ds, n_via, f, map_prior, n_points, seed=12345))
+        factors.append(float(f))
+        d_map = map_mse(model, test_ds, n_via, f, map_prior, n_points)
+        for m, v in zip(METHODS, (p_via, d_via, d_ref, d_map, p_start, _start_only(model, test_ds, n_points))):
             mse[m].append(v)
         check.append(d_check)
         reach.append(ok)
-        log(f"  seed {seed}: ProMP {p_via:.2e}  DeepProMP {d_via:.2e}  refined {d_ref:.2e}  "
+        log(f"  seed {seed}: ProMP {p_via:.2e}  DeepProMP {d_via:.2e}  refined {d_ref:.2e}  MAP {d_map:.2e} (f {f})  "
             f"start-only ProMP {p_start:.2e} DeepProMP {mse['deepprompt_start'][-1]:.2e}  (fit {fit_s[-1]:.1f} s)")
     return SmallDataResult(train_ds.source, len(train_ds.joint_names), len(train_ds), len(test_ds), n_via, tuple(int(s) for s in seeds), mse,
-                           check, reach, fit_s, dataclasses.asdict(train_config))
+                           check, reach, fit_s, dataclasses.asdict(train_config), factors, map_prior)
 
 
 def _start_only(model, test: DemoDataset, n_points: int) -> float:
@@ -166,12 +210,28 @@ def _start_only(model, test: DemoDataset, n_points: int) -> float:
     return float(np.mean(errs))
 
 
+# The small-data configuration (on top of the base training config): the decoder is a residual over
+# a linear basis of 20 RBFs per joint whose linear part starts as the PPCA of the demonstrations with
+# ProMP's covariance regularizer (5 % of the mean weight variance) and stays fixed; latent 64 (> the
+# rank 26 of 27 demos' weight covariance, so the latent linear-Gaussian model holds the ProMP).
+RESIDUAL_CONFIG = dict(decoder_basis=20, latent_dim=64, basis_init="pca", basis_cov_reg=0.05, basis_lr_scale=0.0,
+                       residual_scale=0.1)
+
+
 def run(scale: Scale, out: pathlib.Path, train_config: TrainConfig | None = None,
         log: Callable[[str], None] = print) -> dict:
-    """Experiment 4 at ``scale``; writes ``small_data.{json,md}`` under ``out``."""
+    """Experiment 4 at ``scale``; writes ``small_data.{json,md}`` under ``out``: the base config with
+    :data:`RESIDUAL_CONFIG` (top level of the JSON) and the base config unchanged (``plain``)."""
     base = train_config or common.base_train_config()
     cfg = common.train_config(base, scale.small_steps, max(1, scale.small_steps // 8), 0)
-    res = small_data(cfg, n_train=scale.small_n_train, n_test=scale.small_n_test, seeds=range(scale.small_seeds),
-                     task=common.small_data_task(scale), log=log)
-    files = common.write_outputs(out, "small_data", res.to_json(), res.markdown())
-    return {**res.to_json(), "files": [str(f) for f in files]}
+    kw = dict(n_train=scale.small_n_train, n_test=scale.small_n_test, seeds=range(scale.small_seeds),
+              task=common.small_data_task(scale), log=log)
+    data = default_data(kw["n_train"], kw["n_test"], kw["task"])
+    log(" residual decoder (RESIDUAL_CONFIG):")
+    res = small_data(dataclasses.replace(cfg, **RESIDUAL_CONFIG), data=data, **kw)
+    log(" plain decoder (the base config):")
+    plain = small_data(cfg, data=data, **kw)
+    md = (res.markdown() + "\n## Reference: the plain decoder (base config, unchanged)\n\n"
+          + plain.markdown().split("\n", 2)[2])
+    files = common.write_outputs(out, "small_data", {**res.to_json(), "plain": plain.to_json()}, md)
+    return {**res.to_json(), "plain": plain.to_json(), "files": [str(f) for f in files]}

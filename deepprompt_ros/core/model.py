@@ -1,5 +1,7 @@
 """The DeepProMP network (paper Sec. III-A): per-modality encoders, one shared affine head,
-Bayesian aggregation with prior N(0, I) and importance weights, and an MLP decoder μ_y(z, x).
+Bayesian aggregation with prior N(0, I) and importance weights, and an MLP decoder μ_y(z, x) —
+optionally a residual over a linear basis, μ_y(z, x) = Φ(x)(b + A z) + s·MLP(z, x)
+(``ModelConfig.decoder_basis``; the linear part alone is a PPCA-style ProMP in the latent).
 
 All tensors here are in *normalized* units (joint positions and low-dim contexts standardized
 with the training set's statistics); :mod:`deepprompt_ros.core.primitive` converts to and from
@@ -46,6 +48,16 @@ class ModelConfig:
         Extra Fourier features of the phase fed to encoders and decoder: linear adds
         [sin πhx, cos πhx] for h = 1..H to x; rhythmic uses [sin 2πhx, cos 2πhx] for h = 1..max(1, H).
         Both keep the rhythmic phase periodic.
+    decoder_basis : int
+        n_b > 0 adds a linear-basis part to the decoder: μ_y(z, x) = Φ(x)(b + A z) + s·MLP(z, x),
+        with Φ(x) the n_b normalized RBFs in phase of :class:`core.promp.ProMP` (von Mises functions
+        for a rhythmic phase), b (n_b, d) and A (n_b, d, k) learned (parameter ``basis``). The linear
+        part is a PPCA-style ProMP whose weights are b + A z; the MLP adds the nonlinearity.
+        0 (default): the plain MLP decoder of the paper.
+    basis_width : float
+        RBF standard deviation relative to the centre spacing (ProMP's ``width``).
+    residual_scale : float
+        s, the factor on the MLP part when ``decoder_basis`` > 0 (0 = the linear part only).
     """
 
     n_joints: int
@@ -57,6 +69,9 @@ class ModelConfig:
     sigma_y: float = 0.05
     var_floor: float = 1e-4
     phase_harmonics: int = 0
+    decoder_basis: int = 0
+    basis_width: float = 1.0
+    residual_scale: float = 1.0
 
     def __post_init__(self):
         if self.n_joints < 1:
@@ -67,6 +82,10 @@ class ModelConfig:
             raise ValueError("latent_dim and hidden must be >= 1")
         if not self.sigma_y > 0 or not self.var_floor > 0:
             raise ValueError("sigma_y and var_floor must be > 0")
+        if self.decoder_basis < 0 or self.decoder_basis == 1:
+            raise ValueError(f"decoder_basis must be 0 (no linear basis) or >= 2, got {self.decoder_basis}")
+        if not self.basis_width > 0 or not self.residual_scale >= 0:
+            raise ValueError("basis_width must be > 0 and residual_scale >= 0")
 
     @property
     def phase_dim(self) -> int:
@@ -131,6 +150,41 @@ def phase_features(x, phase_type: str, harmonics: int):
     return lib.stack(feats, -1)
 
 
+def phase_basis(x, n_basis: int, width: float, rhythmic: bool):
+    """Normalized basis Φ(x) of the decoder's linear part (numpy arrays or torch tensors).
+
+    Linear phase: Gaussian RBFs with centres linspace(0, 1, n) and standard deviation width/(n−1);
+    rhythmic: von Mises functions with centres j/n and concentration 1/(2π·width/n)², periodic in x.
+    Both normalized to sum to 1 at every phase (the basis of :class:`core.promp.ProMP`).
+
+    Parameters
+    ----------
+    x : array, shape (...,)
+
+    Returns
+    -------
+    array, shape (..., n)
+    """
+    lib = torch if isinstance(x, torch.Tensor) else np
+    if rhythmic:
+        centres = np.arange(n_basis) / n_basis
+        kappa = 1.0 / (2.0 * math.pi * width / n_basis) ** 2
+        u = x[..., None] - (torch.as_tensor(centres, dtype=x.dtype) if lib is torch else centres)
+        e = kappa * (lib.cos(2.0 * math.pi * u) - 1.0)
+    else:
+        centres = np.linspace(0.0, 1.0, n_basis)
+        h = width / (n_basis - 1)
+        u = x[..., None] - (torch.as_tensor(centres, dtype=x.dtype) if lib is torch else centres)
+        e = -0.5 * (u / h) ** 2
+    if lib is torch:
+        e = e - e.amax(-1, keepdim=True)  # the shift cancels in the normalization
+        b = torch.exp(e)
+        return b / b.sum(-1, keepdim=True)
+    e = e - e.max(-1, keepdims=True)
+    b = np.exp(e)
+    return b / b.sum(-1, keepdims=True)
+
+
 def _mlp_trunk(n_in: int, hidden: int) -> nn.Sequential:
     """2 hidden ReLU layers (the paper's encoder body); the shared head follows."""
     return nn.Sequential(nn.Linear(n_in, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU())
@@ -191,6 +245,11 @@ class DeepProMPNet(nn.Module):
         self.head = nn.Linear(h, 2 * k)  # ONE affine head shared by all encoders
         self.decoder = nn.Sequential(
             nn.Linear(k + cfg.phase_dim, h), nn.ReLU(), nn.Linear(h, h), nn.ReLU(), nn.Linear(h, cfg.n_joints))
+        if cfg.decoder_basis:
+            # linear part: weights b + A z of the n_b basis functions of each joint, row b·d + j
+            self.basis = nn.Linear(k, cfg.decoder_basis * cfg.n_joints)
+            nn.init.zeros_(self.basis.bias)
+            nn.init.normal_(self.basis.weight, std=0.1 / math.sqrt(k))
 
     # -- encoders -------------------------------------------------------------------------
     def _head(self, feat: torch.Tensor):
@@ -219,7 +278,20 @@ class DeepProMPNet(nn.Module):
         if x.dim() == 1:
             x = x.unsqueeze(0).expand(z.shape[0], -1)
         zz = z.unsqueeze(1).expand(-1, x.shape[1], -1)
-        return self.decoder(torch.cat([zz, self.phase_features(x)], -1))
+        out = self.decoder(torch.cat([zz, self.phase_features(x)], -1))
+        if not self.cfg.decoder_basis:
+            return out
+        return self.cfg.residual_scale * out + self.decode_linear(z, x)
+
+    def basis_functions(self, x: torch.Tensor) -> torch.Tensor:
+        """Φ(x) of the linear part: x (..., ) → (..., n_b)."""
+        c = self.cfg
+        return phase_basis(x, c.decoder_basis, c.basis_width, c.phase_type == "rhythmic")
+
+    def decode_linear(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """The linear part Φ(x)(b + A z): z (B, k), x (B, T) → (B, T, d)."""
+        w = self.basis(z).reshape(z.shape[0], self.cfg.decoder_basis, self.cfg.n_joints)  # (B, n_b, d)
+        return torch.bmm(self.basis_functions(x), w)
 
 
 def gaussian_kl(mu_q, var_q, mu_p, var_p) -> torch.Tensor:

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from .checkpoint import Checkpoint, Normalization, load_checkpoint
-from .model import DeepProMPNet, phase_features
+from .model import DeepProMPNet, phase_basis, phase_features
 
 
 def joint_list_text(names: Sequence[str]) -> str:
@@ -153,6 +153,18 @@ class DeepProMP:
         self._head_WT = np.ascontiguousarray(self._head_W.T)
         self._dec = _NumpyMLP(net.decoder)
         k = self.cfg.latent_dim
+        nb, d = self.cfg.decoder_basis, self.cfg.n_joints
+        if nb:  # residual decoder: the MLP's output layer carries the factor s, the linear part is separate
+            self._dec.W[-1] = self._dec.W[-1] * self.cfg.residual_scale
+            self._dec.b[-1] = self._dec.b[-1] * self.cfg.residual_scale
+            self._dec.WT[-1] = np.ascontiguousarray(self._dec.W[-1].T)
+            ystd = np.asarray(normalization.y_std, dtype=np.float64)
+            # Φ(x)(b + A z) in joint units: b (n_b, d), A as (k, n_b·d) for z @ A and (n_b, d, k) for the Jacobian
+            bw = net.basis.weight.detach().double().numpy().reshape(nb, d, k) * ystd[None, :, None]
+            self._basis_b = net.basis.bias.detach().double().numpy().reshape(nb, d) * ystd[None, :]
+            self._basis_A = np.ascontiguousarray(bw)
+            self._basis_AT = np.ascontiguousarray(bw.reshape(nb * d, k).T)
+        self._phi_cache: dict[bytes, np.ndarray] = {}
         self._dec_W1z = self._dec.W[0][:, :k]
         self._dec_W1x = self._dec.W[0][:, k:]
         self._y_mean = np.asarray(normalization.y_mean, dtype=np.float64)
@@ -366,7 +378,31 @@ class DeepProMP:
         else:
             h = pre_x[None] + (z @ self._W1zT)[:, None, :]
         np.maximum(h, 0.0, out=h)
-        return self._decode_hidden(h)
+        out = self._decode_hidden(h)
+        if self.cfg.decoder_basis:
+            out += self._linear_part(z, x)
+        return out
+
+    def _phi(self, x) -> np.ndarray:
+        """Φ(x) of the decoder's linear part, (T, n_b); cached per phase grid like the phase layer."""
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        key = x.tobytes()
+        phi = self._phi_cache.get(key)
+        if phi is None:
+            c = self.cfg
+            phi = phase_basis(x, c.decoder_basis, c.basis_width, c.phase_type == "rhythmic")
+            phi.flags.writeable = False
+            if len(self._phi_cache) >= 16:
+                self._phi_cache.clear()
+            self._phi_cache[key] = phi
+        return phi
+
+    def _linear_part(self, z: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """Φ(x)(b + A z) in joint units (without the mean, which ``_b3`` carries): z (k,) → (T, d),
+        z (n, k) → (n, T, d)."""
+        nb, d = self.cfg.decoder_basis, self.n_joints
+        w = (z @ self._basis_AT).reshape(*z.shape[:-1], nb, d) + self._basis_b  # (..., n_b, d)
+        return self._phi(x) @ w
 
     def _decode_hidden(self, h1: np.ndarray) -> np.ndarray:
         """Decoder layers 2 and 3 from the first hidden layer's activations (..., h) → joint units (..., d)."""
@@ -395,7 +431,11 @@ class DeepProMP:
         """Decode a latent that varies with phase (blending): z_x (T, k), x (T,) → (T, d)."""
         h = self._layer1_phase(x) + z_x @ self._W1zT
         np.maximum(h, 0.0, out=h)
-        return self._decode_hidden(h)
+        out = self._decode_hidden(h)
+        if self.cfg.decoder_basis:  # Σ_b φ_b(x_t)(b_b + A_b z_t), one z per phase
+            w = (z_x @ self._basis_AT).reshape(z_x.shape[0], self.cfg.decoder_basis, self.n_joints) + self._basis_b
+            out += np.einsum("tb,tbd->td", self._phi(x), w)
+        return out
 
     def decoder_jacobian(self, z: np.ndarray, x: np.ndarray, smoothing: float | None = None):
         """μ_y(z, x_i) and ∂μ_y/∂z at each phase, joint units.
@@ -428,6 +468,9 @@ class DeepProMP:
         c = self._dec.W[2][..., None, :, :] * dact(pre2)[..., None, :]  # (..., n, d, h)
         c = np.matmul(c, self._dec.W[1]) * dact(pre1)[..., None, :]  # batched BLAS, (..., n, d, h)
         jac = np.matmul(c, self._dec_W1z) * self._y_std[:, None]  # (..., n, d, k)
+        if self.cfg.decoder_basis:  # the linear part: its Jacobian Σ_b φ_b(x) A_b is the same for every z
+            y = y + self._linear_part(z, x)
+            jac = jac + np.einsum("nb,bdk->ndk", self._phi(x), self._basis_A)
         return y, jac
 
     def mean_trajectory(self, latent: LatentGaussian, x) -> np.ndarray:
@@ -493,11 +536,104 @@ class DeepProMP:
         return self.decode_per_phase(z, x)
 
     # ------------------------------------------------------------------ refinement
+    def _refine_inputs(self, via_x, via_y, joint_mask, max_iterations, tol):
+        x = self.check_phases(via_x, "via-point phase")
+        if x.size == 0:
+            raise ValueError("refinement needs at least one via-point")
+        y = self.check_positions(via_y, x.shape[0])
+        mask = self._check_mask(joint_mask, x.shape[0])
+        if not mask.any():
+            raise ValueError("joint mask selects no joint; expected at least one constrained joint")
+        if max_iterations < 1 or not tol > 0:
+            raise ValueError("max_iterations must be >= 1 and tol > 0")
+        return x, y, mask
+
+    def refine_map(self, latent: LatentGaussian, via_x, via_y, joint_mask=None, prior: str = "posterior",
+                   noise_std=None, max_iterations: int = 50, tol: float = 1e-6,
+                   latent_bound: float = 5.0) -> RefinementResult:
+        """MAP refinement: μ̃ = argmin_z Σ_ij m_ij (y_ij − μ_y(z, x_i)_j)² / s_j² + (z − m)ᵀ P (z − m).
+
+        A regularized least-squares step instead of meeting the via-points exactly. ``prior``:
+        ``"posterior"`` — m, P = the mean and precision diag(1/σ²) of ``latent`` (normally
+        q(z | via-points)); ``"standard"`` — the model's prior N(0, I). For a decoder that is linear
+        in z (``decoder_basis`` > 0 with ``residual_scale`` 0) and the standard prior this is exactly
+        Gaussian conditioning of the latent linear-Gaussian model — ProMP conditioning in the latent.
+        Solved by Levenberg–Marquardt with the decoder's exact Jacobian (one step when it is linear).
+
+        Parameters
+        ----------
+        noise_std : float or array (d,), optional
+            s_j, the via-point standard deviation in joint units; default σ_y · the joint's
+            normalization std (the decoder's own noise level).
+
+        Returns
+        -------
+        RefinementResult with latent N(μ̃, diag of the Laplace covariance (JᵀJ/s² + P)⁻¹);
+        ``max_error`` / ``reachable`` as in :meth:`refine` (a MAP fit usually does not meet
+        tol: it is not meant to), ``sample_mean_error`` = ``max_error``.
+        """
+        x, y, mask = self._refine_inputs(via_x, via_y, joint_mask, max_iterations, tol)
+        if prior == "posterior":
+            m, prec = np.asarray(latent.mean, dtype=np.float64), 1.0 / np.asarray(latent.var, dtype=np.float64)
+        elif prior == "standard":
+            m, prec = np.zeros(self.latent_dim), np.ones(self.latent_dim)
+        else:
+            raise ValueError(f"MAP prior '{prior}' unknown; expected 'posterior' or 'standard'")
+        s = self.cfg.sigma_y * self._y_std if noise_std is None else np.broadcast_to(
+            np.asarray(noise_std, dtype=np.float64), (self.n_joints,))
+        if not np.all(np.isfinite(s)) or np.any(s <= 0):
+            raise ValueError(f"noise_std must be > 0 (joint units), got {noise_std}")
+        wgt = mask.astype(np.float64) / s[None, :]  # residual weights m_ij / s_j
+
+        def terms(z):
+            y_hat, jac = self.decoder_jacobian(z, x)
+            r = ((y - y_hat) * wgt).reshape(-1)
+            J = (jac * wgt[:, :, None]).reshape(-1, self.latent_dim)
+            dz = z - m
+            return r, J, float(r @ r + dz @ (prec * dz)), y_hat
+
+        z = np.clip(latent.mean, -latent_bound, latent_bound).astype(np.float64)
+        r, J, cost, y_hat = terms(z)
+        history = [float(np.abs((y - y_hat) * mask).max())]
+        lam, it, reason = 0.0, 0, "budget"
+        while it < max_iterations:
+            it += 1
+            H = J.T @ J + np.diag(prec)
+            g = J.T @ r - prec * (z - m)  # −½ ∇cost
+            step = np.clip(z + np.linalg.solve(H + lam * np.diag(np.diag(H)), g), -latent_bound, latent_bound) - z
+            r2, J2, c2, y2 = terms(z + step)
+            if c2 <= cost:
+                converged = cost - c2 <= 1e-12 * max(1.0, cost) or np.abs(step).max() < 1e-10
+                z, r, J, cost, y_hat = z + step, r2, J2, c2, y2
+                lam = lam / 3.0
+                history.append(float(np.abs((y - y_hat) * mask).max()))
+                if converged:
+                    reason = "converged (MAP)"
+                    break
+            else:
+                lam = max(lam * 4.0, 1e-6)
+                history.append(history[-1])
+                if lam > 1e8:
+                    reason = "converged (MAP, no descent step)"
+                    break
+        cov = np.linalg.inv(J.T @ J + np.diag(prec))
+        err = (y - y_hat) * mask
+        max_err = float(np.abs(err).max())
+        return RefinementResult(latent=LatentGaussian(z, np.diag(cov).copy()), max_error=max_err, errors=err,
+                                sample_mean_error=max_err, iterations=it, reachable=max_err <= tol, reason=reason,
+                                error_history=np.minimum.accumulate(np.array(history)))
+
     def refine(self, latent: LatentGaussian, via_x, via_y, joint_mask=None, max_iterations: int = 200,
                tol: float = 1e-6, n_samples: int = 16, seed: int = 0, sigma_target: np.ndarray | None = None,
                sigma_iterations: int = 5, max_restarts: int = 5,
-               smoothing_schedule: Sequence[float] = (3.0, 10.0, 30.0, 100.0), latent_bound: float = 5.0) -> RefinementResult:
+               smoothing_schedule: Sequence[float] = (3.0, 10.0, 30.0, 100.0), latent_bound: float = 5.0,
+               objective: str = "exact", map_prior: str = "posterior", noise_std=None) -> RefinementResult:
         """Deployment-time refinement of (μ̃, σ̃) (paper Eq. 5 and appendix).
+
+        ``objective="exact"`` (default) is described below. ``objective="map"`` instead returns the
+        MAP latent of a regularized least-squares problem (see :meth:`refine_map`; ``map_prior``,
+        ``noise_std``, ``max_iterations``, ``tol``, ``latent_bound`` are passed on) — it trades
+        meeting the via-points exactly for staying where the model has seen demonstrations.
 
         Stage 1 moves μ̃ — starting at the given (posterior) mean — so that the trajectory the robot
         executes, μ_y(μ̃, x), passes through the via-points: damped Gauss–Newton
@@ -524,15 +660,12 @@ class DeepProMP:
             extrapolates linearly, so almost any target is "reachable" with a huge z — far outside
             what was demonstrated. Via-points that need more are reported unreachable.
         """
-        x = self.check_phases(via_x, "via-point phase")
-        if x.size == 0:
-            raise ValueError("refinement needs at least one via-point")
-        y = self.check_positions(via_y, x.shape[0])
-        mask = self._check_mask(joint_mask, x.shape[0])
-        if not mask.any():
-            raise ValueError("joint mask selects no joint; expected at least one constrained joint")
-        if max_iterations < 1 or not tol > 0:
-            raise ValueError("max_iterations must be >= 1 and tol > 0")
+        if objective == "map":
+            return self.refine_map(latent, via_x, via_y, joint_mask, prior=map_prior, noise_std=noise_std,
+                                   max_iterations=max_iterations, tol=tol, latent_bound=latent_bound)
+        if objective != "exact":
+            raise ValueError(f"refinement objective '{objective}' unknown; expected 'exact' or 'map'")
+        x, y, mask = self._refine_inputs(via_x, via_y, joint_mask, max_iterations, tol)
         mf = mask.astype(np.float64)
 
         smoothing = [None]

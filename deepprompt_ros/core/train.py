@@ -42,6 +42,7 @@ from .model import DeepProMPNet, ModelConfig, bayesian_aggregate, gaussian_kl
 
 OBJECTIVES = ("paper", "np")
 CONSISTENCY_ENCODER = ("none", "coverage", "all")
+BASIS_INITS = ("random", "pca")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,6 +54,12 @@ class TrainConfig:
     sigma_y: float = 0.05
     var_floor: float = 1e-4
     phase_harmonics: int = 0
+    decoder_basis: int = 0
+    basis_width: float = 1.0
+    residual_scale: float = 1.0
+    basis_init: str = "random"
+    basis_lr_scale: float = 1.0
+    basis_cov_reg: float = 0.0
     objective: str = "np"
     beta: float = 1.0
     kl_anneal_steps: int = 1000
@@ -98,6 +105,11 @@ class TrainConfig:
              "p_via_points, p_context, p_empty, p_low_info must be probabilities in [0, 1]"),
             (0 < self.low_info_fraction <= 1, f"low_info_fraction must be in (0, 1], got {self.low_info_fraction}"),
             (self.val_every >= 1 and self.threads >= 1, "val_every and threads must be >= 1"),
+            (self.decoder_basis == 0 or self.decoder_basis >= 2, "decoder_basis must be 0 or >= 2"),
+            (self.basis_width > 0 and self.residual_scale >= 0, "basis_width must be > 0 and residual_scale >= 0"),
+            (self.basis_cov_reg >= 0, f"basis_cov_reg must be >= 0, got {self.basis_cov_reg}"),
+            (self.basis_lr_scale >= 0, f"basis_lr_scale must be >= 0, got {self.basis_lr_scale}"),
+            (self.basis_init in BASIS_INITS, f"basis_init must be one of {BASIS_INITS}, got '{self.basis_init}'"),
         ]
         for ok, msg in checks:
             if not ok:
@@ -411,6 +423,37 @@ def validation_mse(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, norm: 
     return out
 
 
+@torch.no_grad()
+def init_basis_pca(net: DeepProMPNet, data: TensorData, cov_reg: float = 0.0, ridge: float = 1e-6) -> np.ndarray:
+    """Initialize the decoder's linear part Φ(x)(b + A z) as the PPCA of the training demos
+    (``basis_init: pca``): per demo the ridge-regression weights W_i of the basis (normalized units),
+    b = their mean, the columns of A = the top-k eigenvectors of their covariance C + λI scaled by
+    the square root of the eigenvalue, so z ~ N(0, I) reproduces C + λI in those k directions.
+    λ = ``cov_reg`` · mean(diag C) (ProMP's regularizer, :meth:`core.promp.ProMP.fit`, uses 0.05):
+    it gives the k − rank(C) directions beyond the demos' span a small variance instead of none.
+    With λ = 0 those columns stay 0. Returns the standard deviations of the k columns."""
+    cfg = net.cfg
+    phi = net.basis_functions(data.x.double()).numpy()  # (T, n_b)
+    y = data.y.double().numpy()  # (D, T, d)
+    gram = phi.T @ phi
+    gram += ridge * np.trace(gram) / gram.shape[0] * np.eye(gram.shape[0])
+    w = np.linalg.solve(gram, np.einsum("tb,ntd->nbd", phi, y))  # (D, n_b, d)
+    w = w.reshape(w.shape[0], -1)
+    mean = w.mean(0)
+    _, sv, vt = np.linalg.svd(w - mean, full_matrices=True)  # vt: all n_b·d directions, data span first
+    eig = np.zeros(vt.shape[0])
+    eig[: sv.size] = sv ** 2 / max(1, w.shape[0] - 1)
+    eig += cov_reg * eig.sum() / eig.size
+    r = min(cfg.latent_dim, vt.shape[0])
+    scale = np.zeros(cfg.latent_dim)
+    scale[:r] = np.sqrt(eig[:r])
+    a = np.zeros((w.shape[1], cfg.latent_dim))
+    a[:, :r] = (vt[:r] * scale[:r, None]).T
+    net.basis.bias.copy_(torch.as_tensor(mean, dtype=torch.float32))
+    net.basis.weight.copy_(torch.as_tensor(a, dtype=torch.float32))
+    return scale
+
+
 def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: DemoDataset | None = None):
     """Train on ``ds`` (a validation split is held out unless ``val_ds`` is given).
 
@@ -430,9 +473,22 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
     val = to_tensors(val_ds, norm, cfg.n_points)
     mcfg = ModelConfig(n_joints=len(ds.joint_names), phase_type=ds.phase_type, latent_dim=cfg.latent_dim,
                        hidden=cfg.hidden, context_dims=tuple(ds.context_dims.items()), image_shape=ds.image_shape,
-                       sigma_y=cfg.sigma_y, var_floor=cfg.var_floor, phase_harmonics=cfg.phase_harmonics)
+                       sigma_y=cfg.sigma_y, var_floor=cfg.var_floor, phase_harmonics=cfg.phase_harmonics,
+                       decoder_basis=cfg.decoder_basis, basis_width=cfg.basis_width,
+                       residual_scale=cfg.residual_scale)
     net = DeepProMPNet(mcfg)
-    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    if cfg.decoder_basis and cfg.basis_init == "pca":
+        init_basis_pca(net, data, cfg.basis_cov_reg)
+    if cfg.decoder_basis:  # the linear part learns at lr · basis_lr_scale (0: kept as initialized)
+        rest = [p for n, p in net.named_parameters() if not n.startswith("basis.")]
+        groups = [{"params": rest}]
+        if cfg.basis_lr_scale > 0:
+            groups.append({"params": list(net.basis.parameters()), "lr": cfg.lr * cfg.basis_lr_scale})
+        else:
+            net.basis.requires_grad_(False)
+        opt = torch.optim.Adam(groups, lr=cfg.lr)
+    else:
+        opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     gen = torch.Generator().manual_seed(cfg.seed)
     history, best, best_state = [], math.inf, None
     t0 = time.perf_counter()
