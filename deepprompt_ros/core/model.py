@@ -20,6 +20,8 @@ from torch import nn
 from torch.nn import functional as F
 
 PHASE_TYPES = ("linear", "rhythmic")
+VARIANCE_HEADS = ("softplus", "exp")
+LOGVAR_MAX = 12.0  # "exp" head: σ²_i ≤ e^12 ≈ 1.6e5 (precision ≥ 6e-6, an element can all but vanish)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,6 +60,11 @@ class ModelConfig:
         RBF standard deviation relative to the centre spacing (ProMP's ``width``).
     residual_scale : float
         s, the factor on the MLP part when ``decoder_basis`` > 0 (0 = the linear part only).
+    variance_head : {"softplus", "exp"}
+        How the shared head's second half r becomes σ²_i: softplus(r) + var_floor (default), or
+        exp(min(r, 12)) + var_floor. With "exp" a large σ²_i (an element that says almost nothing,
+        precision → 0) is a moderate r, reached by gradient steps of the usual size; with softplus
+        σ²_i grows only linearly in r.
     """
 
     n_joints: int
@@ -72,6 +79,7 @@ class ModelConfig:
     decoder_basis: int = 0
     basis_width: float = 1.0
     residual_scale: float = 1.0
+    variance_head: str = "softplus"
 
     def __post_init__(self):
         if self.n_joints < 1:
@@ -84,6 +92,8 @@ class ModelConfig:
             raise ValueError("sigma_y and var_floor must be > 0")
         if self.decoder_basis < 0 or self.decoder_basis == 1:
             raise ValueError(f"decoder_basis must be 0 (no linear basis) or >= 2, got {self.decoder_basis}")
+        if self.variance_head not in VARIANCE_HEADS:
+            raise ValueError(f"variance_head '{self.variance_head}' unknown; expected one of {VARIANCE_HEADS}")
         if not self.basis_width > 0 or not self.residual_scale >= 0:
             raise ValueError("basis_width must be > 0 and residual_scale >= 0")
 
@@ -254,6 +264,8 @@ class DeepProMPNet(nn.Module):
     # -- encoders -------------------------------------------------------------------------
     def _head(self, feat: torch.Tensor):
         mu, raw = self.head(feat).chunk(2, dim=-1)
+        if self.cfg.variance_head == "exp":
+            return mu, torch.exp(raw.clamp_max(LOGVAR_MAX)) + self.cfg.var_floor
         return mu, F.softplus(raw) + self.cfg.var_floor
 
     def phase_features(self, x: torch.Tensor) -> torch.Tensor:

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from .checkpoint import Checkpoint, Normalization, load_checkpoint
-from .model import DeepProMPNet, phase_basis, phase_features
+from .model import LOGVAR_MAX, DeepProMPNet, phase_basis, phase_features
 
 
 def joint_list_text(names: Sequence[str]) -> str:
@@ -258,7 +258,10 @@ class DeepProMP:
         out += self._head_b
         k = self.latent_dim
         raw = out[..., k:]
-        var = np.logaddexp(0.0, raw) + self.cfg.var_floor  # softplus + floor, as in the network
+        if self.cfg.variance_head == "exp":  # as in the network (model.DeepProMPNet._head)
+            var = np.exp(np.minimum(raw, LOGVAR_MAX)) + self.cfg.var_floor
+        else:
+            var = np.logaddexp(0.0, raw) + self.cfg.var_floor  # softplus + floor
         return out[..., :k], var
 
     def _phase_feats(self, x: np.ndarray) -> np.ndarray:

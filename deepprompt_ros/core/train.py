@@ -53,6 +53,7 @@ class TrainConfig:
     hidden: int = 128
     sigma_y: float = 0.05
     var_floor: float = 1e-4
+    variance_head: str = "softplus"
     phase_harmonics: int = 0
     decoder_basis: int = 0
     basis_width: float = 1.0
@@ -475,7 +476,7 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
                        hidden=cfg.hidden, context_dims=tuple(ds.context_dims.items()), image_shape=ds.image_shape,
                        sigma_y=cfg.sigma_y, var_floor=cfg.var_floor, phase_harmonics=cfg.phase_harmonics,
                        decoder_basis=cfg.decoder_basis, basis_width=cfg.basis_width,
-                       residual_scale=cfg.residual_scale)
+                       residual_scale=cfg.residual_scale, variance_head=cfg.variance_head)
     net = DeepProMPNet(mcfg)
     if cfg.decoder_basis and cfg.basis_init == "pca":
         init_basis_pca(net, data, cfg.basis_cov_reg)
