@@ -9,14 +9,18 @@ validation) and reconstruct held-out demonstrations from ``n_via`` random via-po
 ``deepprompt_refined``   the same, after :meth:`DeepProMP.refine` through the via-points (executed
                          trajectory μ_y(μ̃, x))
 ``deepprompt_map``       the same, after MAP refinement (:meth:`DeepProMP.refine_map`, prior ``map_prior``):
-                         the regularized least-squares latent, via-point noise f·σ_y·RMS(joint std) with the
-                         factor f chosen from ``map_noise_factors`` on the VALIDATION demos of the
-                         training split (never on the test demos)
+                         the regularized least-squares latent. Via-point noise: with ``cv_grid`` one value
+                         in rad chosen by cross-validation on the training demos; otherwise
+                         f·σ_y·RMS(joint std) with f chosen from ``map_noise_factors`` on the VALIDATION
+                         demos of the training split (never on the test demos)
+``deepprompt_map_linear`` (residual decoders) the same MAP with the MLP residual switched off
 ``*_start``              conditioned on the start point only (x = 0)
 
 :data:`RESIDUAL_CONFIG` is the configuration :func:`run` uses (the plain decoder is run too, as the
 reference): a decoder that is a residual over a linear RBF basis, its linear part initialized as the
-PPCA of the demonstrations with ProMP's covariance regularizer and kept fixed, latent 64
+PPCA of the demonstrations with ProMP's covariance regularizer and kept fixed; its latent size, that
+regularizer and the MAP noise are chosen by leave-one-out cross-validation on the training demos
+(:data:`CV_GRID`), the MLP residual is kept where it helps on the validation demos
 (EXPERIMENTS.md section 4 has the measurements behind each choice).
 
 Call :func:`small_data` with any :class:`TrainConfig` to measure a change of the model or its training::
@@ -36,15 +40,18 @@ import numpy as np
 
 from deepprompt_ros.core.baselines import DeepProMPModel, ProMPModel, reconstruction_mse
 from deepprompt_ros.core.dataset import DemoDataset
-from deepprompt_ros.core.train import TrainConfig
+from deepprompt_ros.core.train import TrainConfig, cv_basis_hyperparameters
 
 from . import common
 from .common import Scale
 
-METHODS = ("promp", "deepprompt", "deepprompt_refined", "deepprompt_map", "promp_start", "deepprompt_start")
+METHODS = ("promp", "deepprompt", "deepprompt_refined", "deepprompt_map", "deepprompt_map_linear", "promp_start",
+           "deepprompt_start")
 LABELS = {"promp": "ProMP, {n} via-points", "deepprompt": "DeepProMP, {n} via-points",
           "deepprompt_refined": "DeepProMP, {n} via-points + refinement",
-          "deepprompt_map": "DeepProMP, {n} via-points + MAP refinement", "promp_start": "ProMP, start point only",
+          "deepprompt_map": "DeepProMP, {n} via-points + MAP refinement",
+          "deepprompt_map_linear": "DeepProMP, {n} via-points + MAP refinement, MLP residual off",
+          "promp_start": "ProMP, start point only",
           "deepprompt_start": "DeepProMP, start point only"}
 
 
@@ -66,6 +73,10 @@ class SmallDataResult:
     config: dict
     map_noise_factor: list = dataclasses.field(default_factory=list)  # f chosen on the validation demos, per seed
     map_prior: str = "standard"
+    map_noise_std: list = dataclasses.field(default_factory=list)  # the MAP via-point noise used (rad), per seed
+    cv: dict = dataclasses.field(default_factory=dict)  # cross-validation on the training demos (cv_grid), or {}
+    residual_used: list = dataclasses.field(default_factory=list)  # residual scale of the deepprompt_map row, per seed
+    residual_val: list = dataclasses.field(default_factory=list)  # validation MAP MSE [trained residual, off], per seed
 
     def stats(self) -> dict:
         return {m: dict(zip(("mean", "se"), common.mean_se(v))) for m, v in self.mse.items()}
@@ -84,18 +95,29 @@ class SmallDataResult:
     def markdown(self) -> str:
         s = self.stats()
         rows = [[LABELS[m].format(n=self.n_via), common.fmt_pm(s[m]["mean"], s[m]["se"]),
-                 f"{s[m]['mean'] / s['promp' if 'start' not in m else 'promp_start']['mean']:.2f}"] for m in METHODS]
+                 f"{s[m]['mean'] / s['promp' if 'start' not in m else 'promp_start']['mean']:.2f}"] for m in METHODS
+                if m in s]
         r = self.ratios()
         c = self.config
         dec = (f"decoder: residual over {c['decoder_basis']} RBFs (`basis_init` {c['basis_init']}, `basis_cov_reg` "
                f"{c['basis_cov_reg']}, `basis_lr_scale` {c['basis_lr_scale']}, `residual_scale` {c['residual_scale']})"
                if c.get("decoder_basis") else "decoder: plain MLP")
+        if self.cv:
+            chosen = (f"chosen by {self.cv['folds']}-fold cross-validation on the {self.cv['n_demos']} training demos "
+                      f"(linear part, {self.cv['draws']} via-point draws per demo): latent {self.cv['latent_dim']}, "
+                      f"`basis_cov_reg` {self.cv['basis_cov_reg']}, noise {self.cv['noise_std']} rad")
+            map_txt = f"noise s = {self.cv['noise_std']} rad, {chosen}"
+        else:
+            map_txt = f"noise factor f = {self.map_noise_factor} (chosen on the validation demos)"
+        if self.residual_val:
+            map_txt += (f"; MLP residual per seed: scale {self.residual_used} (the trained one or 0, whichever has the "
+                        f"lower MAP MSE on the validation demos: {[[float(f'{v:.3e}') for v in r] for r in self.residual_val]})")
         return (f"# Small data: {self.n_train} demonstrations of `{self.task}` ({self.n_joints} joints) ({self.n_test} held-out demos, "
                 f"{len(self.seeds)} seed(s))\n\nHeld-out reconstruction MSE (rad², mean ± standard error over "
                 f"seeds; ProMP is deterministic). DeepProMP: {c['steps']} updates, objective "
                 f"`{c['objective']}`, latent {c['latent_dim']}, {dec}. Refinement met 1e-6 rad on "
                 f"{np.mean(self.refine_reachable):.0%} of the via-point sets. MAP refinement: prior "
-                f"`{self.map_prior}`, noise factor f = {self.map_noise_factor} (chosen on the validation demos).\n\n"
+                f"`{self.map_prior}`, {map_txt}.\n\n"
                 + common.markdown_table(["method", "MSE (rad²)", "÷ ProMP (same conditioning)"], rows)
                 + f"\nDeepProMP / ProMP: {r['deepprompt/promp']:.1f}× with {self.n_via} via-points, "
                   f"{r['deepprompt_refined/promp']:.1f}× after refinement, "
@@ -125,14 +147,16 @@ def refined_mse(model: DeepProMPModel, test: DemoDataset, n_via: int, n_points: 
 
 
 def map_mse(model: DeepProMPModel, test: DemoDataset, n_via: int, noise_factor: float, prior: str = "standard",
-            n_points: int = 100, seed: int = 0) -> float:
+            n_points: int = 100, seed: int = 0, noise_std: float | None = None) -> float:
     """MSE after :meth:`DeepProMP.refine_map` from the posterior q(z | via-points); the via-points of
     :func:`refined_mse`. Via-point noise: ONE standard deviation for all joints (rad, as ProMP's
     via-point noise), ``noise_factor`` · σ_y · RMS of the joints' normalization stds (per-joint
-    σ_y · std measured 1.12× ProMP instead of 1.0× on seed 0: it makes the small-range joints stiff)."""
+    σ_y · std measured 1.12× ProMP instead of 1.0× on seed 0: it makes the small-range joints stiff).
+    ``noise_std`` (rad), if given, is used instead (``noise_factor`` is then ignored)."""
     prim = model.primitive
     x = np.linspace(0.0, 1.0, n_points)
-    noise = noise_factor * prim.cfg.sigma_y * float(np.sqrt(np.mean(np.asarray(prim.norm.y_std, dtype=np.float64) ** 2)))
+    noise = float(noise_std) if noise_std is not None else \
+        noise_factor * prim.cfg.sigma_y * float(np.sqrt(np.mean(np.asarray(prim.norm.y_std, dtype=np.float64) ** 2)))
     errs = []
     for i, demo in enumerate(test.demos):
         y = demo.resampled(n_points)
@@ -161,7 +185,8 @@ def default_data(n_train: int = 30, n_test: int = 50, task: str = "wam_reach") -
 def small_data(train_config: TrainConfig, data: tuple[DemoDataset, DemoDataset] | None = None, n_train: int = 30,
                n_test: int = 50, n_via: int = 5, seeds: Sequence[int] = (0,), task: str = "wam_reach",
                log: Callable[[str], None] = print, map_prior: str = "standard",
-               map_noise_factors: Sequence[float] = (0.25, 0.5, 1.0, 2.0)) -> SmallDataResult:
+               map_noise_factors: Sequence[float] = (0.25, 0.5, 1.0, 2.0), cv_grid: dict | None = None,
+               residual_select: bool = False, val_draws: int = 8) -> SmallDataResult:
     """Train DeepProMP with ``train_config`` (its seed replaced by each of ``seeds``) and ProMP on the
     same demonstrations; measure held-out MSE with ``n_via`` via-points, with and without refinement.
 
@@ -171,11 +196,30 @@ def small_data(train_config: TrainConfig, data: tuple[DemoDataset, DemoDataset] 
     data : (train, test) datasets; default :func:`default_data` (``n_train``, ``n_test``, ``task``)
     map_prior, map_noise_factors : MAP refinement (row ``deepprompt_map``): its prior and the noise
         factors f tried on the validation demos of each seed's training split (the best is used on the test demos)
+    cv_grid : if given (keys ``latent_dims``, ``cov_regs``, ``noise_stds``, optional ``folds``, ``draws``;
+        :func:`core.train.cv_basis_hyperparameters`), the latent size, ``basis_cov_reg`` and the MAP
+        via-point noise (rad) are chosen by cross-validation of the decoder's linear part on the
+        training demos ``train`` (all of them; never the test demos), once for all seeds, and replace
+        ``train_config``'s values and ``map_noise_factors``
+    residual_select : (residual decoders) per seed, the ``deepprompt_map`` row uses the trained MLP residual
+        or none (scale 0), whichever has the lower MAP MSE on the seed's validation demos (``val_draws``
+        via-point sets per demo). Row ``deepprompt_map_linear`` is always the residual-off MAP on the test demos.
     """
     train_ds, test_ds = data if data is not None else default_data(n_train, n_test, task)
     n_points = train_config.n_points
     mse = {m: [] for m in METHODS}
-    check, reach, fit_s, factors = [], [], [], []
+    check, reach, fit_s, factors, noises, res_used, res_val = [], [], [], [], [], [], []
+    cv = {}
+    if cv_grid is not None:
+        if not train_config.decoder_basis:
+            raise ValueError("cv_grid needs a decoder with a linear basis (decoder_basis > 0)")
+        t0 = time.perf_counter()
+        cv = cv_basis_hyperparameters(train_ds, n_points, train_config.decoder_basis, train_config.basis_width,
+                                      n_via=n_via, **cv_grid)
+        cv["wall_time_s"] = time.perf_counter() - t0
+        train_config = dataclasses.replace(train_config, latent_dim=cv["latent_dim"], basis_cov_reg=cv["basis_cov_reg"])
+        log(f"  cross-validation ({cv['folds']} folds, {cv['wall_time_s']:.1f} s): latent {cv['latent_dim']}, "
+            f"basis_cov_reg {cv['basis_cov_reg']}, MAP noise {cv['noise_std']} rad (CV MSE {cv['cv_mse']:.3e})")
     promp = ProMPModel().fit(train_ds, train_config)
     p_via = reconstruction_mse(promp, test_ds, "via_point", n_via=n_via, n_points=n_points)
     p_start = _start_only(promp, test_ds, n_points)
@@ -187,17 +231,37 @@ def small_data(train_config: TrainConfig, data: tuple[DemoDataset, DemoDataset] 
         d_via = reconstruction_mse(model, test_ds, "via_point", n_via=n_via, n_points=n_points)
         d_ref, d_check, ok = refined_mse(model, test_ds, n_via, n_points)
         _, val_ds = train_ds.split(cfg.n_val or max(1, len(train_ds) // 10), seed=cfg.seed)  # DeepProMPModel.fit's split
-        f = min(map_noise_factors, key=lambda f: map_mse(model, val_ds, n_via, f, map_prior, n_points, seed=12345))
+        if cv:
+            f, noise = float("nan"), cv["noise_std"]
+        else:
+            f, noise = min(map_noise_factors, key=lambda f: map_mse(model, val_ds, n_via, f, map_prior, n_points, seed=12345)), None
         factors.append(float(f))
-        d_map = map_mse(model, test_ds, n_via, f, map_prior, n_points)
-        for m, v in zip(METHODS, (p_via, d_via, d_ref, d_map, p_start, _start_only(model, test_ds, n_points))):
+        chosen = model
+        if cfg.decoder_basis:
+            linear = DeepProMPModel()
+            linear._set(model.primitive.with_residual_scale(0.0))
+            mse["deepprompt_map_linear"].append(map_mse(linear, test_ds, n_via, f, map_prior, n_points, noise_std=noise))
+            if residual_select:
+                val = [float(np.mean([map_mse(m, val_ds, n_via, f, map_prior, n_points, seed=12345 + r, noise_std=noise)
+                                      for r in range(val_draws)])) for m in (model, linear)]
+                res_val.append(val)
+                chosen = linear if val[1] < val[0] else model
+            res_used.append(float(chosen.primitive.cfg.residual_scale))
+        d_map = map_mse(chosen, test_ds, n_via, f, map_prior, n_points, noise_std=noise)
+        prim = model.primitive
+        noises.append(float(noise) if noise is not None else float(
+            f * prim.cfg.sigma_y * np.sqrt(np.mean(np.asarray(prim.norm.y_std, dtype=np.float64) ** 2))))
+        for m, v in zip(("promp", "deepprompt", "deepprompt_refined", "deepprompt_map", "promp_start", "deepprompt_start"),
+                        (p_via, d_via, d_ref, d_map, p_start, _start_only(model, test_ds, n_points))):
             mse[m].append(v)
         check.append(d_check)
         reach.append(ok)
-        log(f"  seed {seed}: ProMP {p_via:.2e}  DeepProMP {d_via:.2e}  refined {d_ref:.2e}  MAP {d_map:.2e} (f {f})  "
+        log(f"  seed {seed}: ProMP {p_via:.2e}  DeepProMP {d_via:.2e}  refined {d_ref:.2e}  MAP {d_map:.2e} (noise {noises[-1]:.2e} rad)  "
             f"start-only ProMP {p_start:.2e} DeepProMP {mse['deepprompt_start'][-1]:.2e}  (fit {fit_s[-1]:.1f} s)")
+    if not mse["deepprompt_map_linear"]:
+        del mse["deepprompt_map_linear"]
     return SmallDataResult(train_ds.source, len(train_ds.joint_names), len(train_ds), len(test_ds), n_via, tuple(int(s) for s in seeds), mse,
-                           check, reach, fit_s, dataclasses.asdict(train_config), factors, map_prior)
+                           check, reach, fit_s, dataclasses.asdict(train_config), factors, map_prior, noises, cv, res_used, res_val)
 
 
 def _start_only(model, test: DemoDataset, n_points: int) -> float:
@@ -216,19 +280,27 @@ def _start_only(model, test: DemoDataset, n_points: int) -> float:
 # rank 26 of 27 demos' weight covariance, so the latent linear-Gaussian model holds the ProMP).
 RESIDUAL_CONFIG = dict(decoder_basis=20, latent_dim=64, basis_init="pca", basis_cov_reg=0.05, basis_lr_scale=0.0,
                        residual_scale=0.1)
+# run() replaces RESIDUAL_CONFIG's latent_dim and basis_cov_reg, and the MAP noise, by leave-one-out
+# cross-validation of the linear part on the training demos over this grid (core.train.cv_basis_hyperparameters;
+# 140 = 20 RBFs x 7 joints, the full weight space), and keeps the trained MLP residual only where it beats
+# "residual off" on the validation demos (residual_select).
+CV_GRID = dict(latent_dims=(32, 64, 140), cov_regs=(0.0, 0.01, 0.02, 0.05, 0.1, 0.2),
+               noise_stds=(3e-4, 1e-3, 3e-3, 1e-2, 3e-2), folds=0, draws=4)
 
 
 def run(scale: Scale, out: pathlib.Path, train_config: TrainConfig | None = None,
         log: Callable[[str], None] = print) -> dict:
     """Experiment 4 at ``scale``; writes ``small_data.{json,md}`` under ``out``: the base config with
-    :data:`RESIDUAL_CONFIG` (top level of the JSON) and the base config unchanged (``plain``)."""
+    :data:`RESIDUAL_CONFIG`, its latent size / ``basis_cov_reg`` / MAP noise chosen by cross-validation
+    on the training demos over :data:`CV_GRID` and the residual kept or dropped on validation (top level
+    of the JSON), and the base config unchanged (``plain``, MAP noise factor chosen on the validation demos)."""
     base = train_config or common.base_train_config()
     cfg = common.train_config(base, scale.small_steps, max(1, scale.small_steps // 8), 0)
     kw = dict(n_train=scale.small_n_train, n_test=scale.small_n_test, seeds=range(scale.small_seeds),
               task=common.small_data_task(scale), log=log)
     data = default_data(kw["n_train"], kw["n_test"], kw["task"])
-    log(" residual decoder (RESIDUAL_CONFIG):")
-    res = small_data(dataclasses.replace(cfg, **RESIDUAL_CONFIG), data=data, **kw)
+    log(" residual decoder (RESIDUAL_CONFIG, latent / basis_cov_reg / MAP noise by cross-validation on CV_GRID):")
+    res = small_data(dataclasses.replace(cfg, **RESIDUAL_CONFIG), data=data, cv_grid=CV_GRID, residual_select=True, **kw)
     log(" plain decoder (the base config):")
     plain = small_data(cfg, data=data, **kw)
     md = (res.markdown() + "\n## Reference: the plain decoder (base config, unchanged)\n\n"

@@ -114,6 +114,17 @@ def test_small_data_numbers_are_consistent(tiny_run):
     np.testing.assert_allclose(res["check"], res["mse"]["deepprompt"], rtol=1e-9)
     # ProMP conditioned on 5 points beats its start-point-only conditioning
     assert res["mse"]["promp"][0] < res["mse"]["promp_start"][0]
+    # the residual decoder's latent size / regularizer / MAP noise come from cross-validation on the
+    # training demos (argmin of its table), and reach the trained model and the MAP row
+    cv = res["cv"]
+    assert cv["n_demos"] == res["n_train"] and cv["folds"] == res["n_train"]  # leave-one-out
+    assert [cv["latent_dim"], cv["basis_cov_reg"], cv["noise_std"], cv["cv_mse"]] == min(cv["table"], key=lambda r: r[3])
+    assert res["config"]["latent_dim"] == cv["latent_dim"] and res["config"]["basis_cov_reg"] == cv["basis_cov_reg"]
+    assert res["map_noise_std"] == [cv["noise_std"]]
+    # the residual is kept or dropped by its validation MAP MSE
+    (val_on, val_off), = res["residual_val"]
+    assert res["residual_used"] == [0.0 if val_off < val_on else res["config"]["residual_scale"]]
+    assert "cv" not in res["plain"] or not res["plain"]["cv"]
 
 
 def test_bimodal_cases_parsed_from_the_bench_script(tiny_run):

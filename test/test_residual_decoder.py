@@ -13,7 +13,8 @@ from deepprompt_ros.core.dataset import Demonstration, DemoDataset
 from deepprompt_ros.core.model import DeepProMPNet, ModelConfig, phase_basis
 from deepprompt_ros.core.primitive import DeepProMP, LatentGaussian
 from deepprompt_ros.core.promp import ProMP
-from deepprompt_ros.core.train import TrainConfig, fit_normalization, init_basis_pca, to_tensors, train
+from deepprompt_ros.core.train import (TrainConfig, cv_basis_hyperparameters, fit_normalization, init_basis_pca,
+                                       linear_map_condition, pca_basis, to_tensors, train)
 
 torch.set_num_threads(1)
 NORM = Normalization(np.array([0.1, -0.2, 0.3]), np.array([0.5, 1.5, 2.0]))
@@ -161,3 +162,92 @@ def test_training_with_a_fixed_pca_basis_keeps_it_and_the_config_reaches_the_che
     assert dataclasses.asdict(ck.config)["decoder_basis"] == 10 and ck.config.residual_scale == 0.1
     with pytest.raises(ValueError, match="basis_init"):
         TrainConfig(basis_init="zeros")
+
+
+def _pca_prim(ds, k, cov_reg, n_points=50, nb=10):
+    """A DeepProMP whose decoder is the PPCA linear part alone (residual 0), fitted to all of ``ds``."""
+    norm = fit_normalization(ds, n_points)
+    data = to_tensors(ds, norm, n_points)
+    torch.manual_seed(0)
+    net = DeepProMPNet(ModelConfig(n_joints=3, latent_dim=k, hidden=8, decoder_basis=nb, residual_scale=0.0))
+    init_basis_pca(net, data, cov_reg=cov_reg)
+    return DeepProMP(net, norm, ds.joint_names), norm
+
+
+def test_closed_form_linear_map_is_the_deployed_map_refinement_in_joint_units():
+    # the CV scores the model MAP refinement deploys: same PPCA, same noise in rad, same trajectory
+    ds = _demos(12)
+    # full rank (10 RBFs × 3 joints): A Aᵀ is unique (below it the λ-only directions kept are arbitrary)
+    prim, norm = _pca_prim(ds, k=30, cov_reg=0.05)
+    x = np.linspace(0, 1, 50)
+    phi = phase_basis(x, 10, 1.0, False)
+    yn = (np.stack([d.resampled(50) for d in ds.demos]) - norm.y_mean) / norm.y_std
+    mean, a, _ = pca_basis(phi, yn, 30, 0.05)
+    a_net = prim.net.basis.weight.detach().double().numpy()
+    np.testing.assert_allclose(a @ a.T, a_net @ a_net.T, atol=1e-5)
+    np.testing.assert_allclose(mean, prim.net.basis.bias.detach().double().numpy(), atol=1e-5)
+    sel = np.array([3, 17, 30, 44])
+    y_via = ds.demos[0].resampled(50)[sel] + 0.02
+    s = 0.01  # rad
+    res = prim.refine_map(LatentGaussian(np.zeros(30), np.ones(30)), x[sel], y_via, prior="standard", noise_std=s)
+    closed = linear_map_condition(phi, mean, a, sel, ((y_via - norm.y_mean) / norm.y_std),
+                                  s / np.asarray(norm.y_std)) * norm.y_std + norm.y_mean
+    np.testing.assert_allclose(prim.mean_trajectory(res.latent, x), closed, atol=2e-5)
+    # a noise in normalized units (not divided by the joint std) would be a different fit
+    wrong = linear_map_condition(phi, mean, a, sel, ((y_via - norm.y_mean) / norm.y_std),
+                                 np.full(3, s)) * norm.y_std + norm.y_mean
+    assert np.abs(wrong - closed).max() > 1e-3
+
+
+def test_cross_validation_scores_are_held_out_gaussian_conditioning_and_the_minimum_is_chosen():
+    ds = _demos(9, seed=1)
+    grid = dict(latent_dims=(4, 30), cov_regs=(0.0, 0.05), noise_stds=(1e-3, 0.3))
+    cv = cv_basis_hyperparameters(ds, 50, 10, latent_dims=grid["latent_dims"], cov_regs=grid["cov_regs"],
+                                  noise_stds=grid["noise_stds"], n_via=3, folds=3, draws=2, seed=4)
+    assert cv["folds"] == 3 and len(cv["table"]) == 8
+    best = min(cv["table"], key=lambda r: r[3])
+    assert (cv["latent_dim"], cv["basis_cov_reg"], cv["noise_std"], cv["cv_mse"]) == tuple(best)
+    # recompute one entry independently: full-rank latent (30 = 10 RBFs × 3 joints) = weight-space Gaussian
+    # N(b, A Aᵀ) conditioned on the held-out demo's via-points (the fold assignment of the function)
+    k, c, s = 30, 0.05, 1e-3
+    n = len(ds)
+    fold_of = np.empty(n, dtype=int)
+    fold_of[np.random.default_rng(4).permutation(n)] = np.arange(n) % 3
+    x = np.linspace(0, 1, 50)
+    phi = phase_basis(x, 10, 1.0, False)
+    y = np.stack([d.resampled(50) for d in ds.demos])
+    errs = []
+    for f in range(3):
+        tr = np.flatnonzero(fold_of != f)
+        norm = fit_normalization(DemoDataset(tuple(ds.demos[i] for i in tr), "t"), 50)
+        yn = (y - norm.y_mean) / norm.y_std
+        mean, a, _ = pca_basis(phi, yn[tr], k, c)
+        cov = a @ a.T
+        for i in np.flatnonzero(fold_of == f):
+            for r in range(2):
+                sel = np.sort(np.random.default_rng([4, i, r]).choice(50, 3, replace=False))
+                H = np.kron(phi[sel], np.eye(3))  # rows (via, joint), weights b·d + j
+                R = np.diag(np.tile((s / norm.y_std) ** 2, len(sel)))
+                w = mean + cov @ H.T @ np.linalg.solve(H @ cov @ H.T + R, yn[i, sel].reshape(-1) - H @ mean)
+                pred = (phi @ w.reshape(10, 3)) * norm.y_std + norm.y_mean
+                errs.append(((pred - y[i]) ** 2).mean())
+    entry = [r for r in cv["table"] if r[:3] == [k, c, s]][0]
+    assert entry[3] == pytest.approx(np.mean(errs), rel=1e-6)
+    # a noise far above the demos' spread ignores the via-points: worse than a tight fit
+    loose = [r for r in cv["table"] if r[:3] == [k, c, 0.3]][0]
+    assert loose[3] > entry[3]
+
+
+def test_with_residual_scale_switches_the_mlp_part_and_keeps_the_rest():
+    net, prim = _prim(rs=0.3)
+    x = np.linspace(0, 1, 7)
+    z = np.random.default_rng(0).standard_normal(5)
+    off = prim.with_residual_scale(0.0)
+    lin = net.decode_linear(torch.as_tensor(z[None], dtype=torch.float32),
+                            torch.as_tensor(x[None], dtype=torch.float32)).detach().double().numpy()[0]
+    np.testing.assert_allclose(off.decode(z, x), lin * NORM.y_std + NORM.y_mean, atol=1e-5)
+    np.testing.assert_allclose(prim.with_residual_scale(0.3).decode(z, x), prim.decode(z, x), atol=1e-12)
+    assert np.abs(off.decode(z, x) - prim.decode(z, x)).max() > 1e-4
+    assert prim.cfg.residual_scale == 0.3  # the original is unchanged
+    with pytest.raises(ValueError, match="residual decoder"):
+        _prim(nb=0)[1].with_residual_scale(0.0)

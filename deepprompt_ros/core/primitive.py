@@ -186,6 +186,16 @@ class DeepProMP:
             ck = load_checkpoint(ck)
         return cls(ck.build(), ck.normalization, ck.joint_names, name or "primitive", ck.metadata)
 
+    def with_residual_scale(self, residual_scale: float) -> "DeepProMP":
+        """A copy whose decoder's MLP residual carries the factor ``residual_scale`` instead of the
+        trained one (``decoder_basis`` > 0 only; 0 = the linear part Φ(x)(b + A z) alone). The
+        weights are shared in value (copied), the encoders are unchanged."""
+        if not self.cfg.decoder_basis:
+            raise ValueError("with_residual_scale needs a residual decoder (decoder_basis > 0)")
+        net = DeepProMPNet(dataclasses.replace(self.cfg, residual_scale=float(residual_scale)))
+        net.load_state_dict(self.net.state_dict())
+        return DeepProMP(net, self.norm, self.joint_names, self.name, self.metadata)
+
     # ------------------------------------------------------------------ properties
     @property
     def n_joints(self) -> int:

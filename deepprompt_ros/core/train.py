@@ -38,7 +38,7 @@ import torch
 from . import __version__
 from .checkpoint import Normalization, save_checkpoint
 from .dataset import DatasetError, DemoDataset, builtin_dataset, load_dataset
-from .model import DeepProMPNet, ModelConfig, bayesian_aggregate, gaussian_kl
+from .model import DeepProMPNet, ModelConfig, bayesian_aggregate, gaussian_kl, phase_basis
 
 OBJECTIVES = ("paper", "np")
 CONSISTENCY_ENCODER = ("none", "coverage", "all")
@@ -424,6 +424,38 @@ def validation_mse(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, norm: 
     return out
 
 
+def pca_basis(phi: np.ndarray, y: np.ndarray, latent_dim: int, cov_reg: float = 0.0,
+              ridge: float = 1e-6) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The PPCA of demonstrations in a basis (numpy, float64) — the computation behind
+    :func:`init_basis_pca`: per demo the ridge-regression weights W_i (rows b·d + j), b = their mean,
+    the k = ``latent_dim`` columns of A = the top-k eigenvectors of their covariance C + λI times the
+    square root of the eigenvalue, λ = ``cov_reg`` · mean(diag C).
+
+    Parameters
+    ----------
+    phi : (T, n_b) basis at the demos' phases; y : (D, T, d) demos (normalized units)
+
+    Returns
+    -------
+    mean (n_b·d,), a (n_b·d, k), scale (k,) — the columns' standard deviations (0 beyond n_b·d)
+    """
+    gram = phi.T @ phi
+    gram = gram + ridge * np.trace(gram) / gram.shape[0] * np.eye(gram.shape[0])
+    w = np.linalg.solve(gram, np.einsum("tb,ntd->nbd", phi, y))  # (D, n_b, d)
+    w = w.reshape(w.shape[0], -1)
+    mean = w.mean(0)
+    _, sv, vt = np.linalg.svd(w - mean, full_matrices=True)  # vt: all n_b·d directions, data span first
+    eig = np.zeros(vt.shape[0])
+    eig[: sv.size] = sv ** 2 / max(1, w.shape[0] - 1)
+    eig += cov_reg * eig.sum() / eig.size
+    r = min(latent_dim, vt.shape[0])
+    scale = np.zeros(latent_dim)
+    scale[:r] = np.sqrt(eig[:r])
+    a = np.zeros((w.shape[1], latent_dim))
+    a[:, :r] = (vt[:r] * scale[:r, None]).T
+    return mean, a, scale
+
+
 @torch.no_grad()
 def init_basis_pca(net: DeepProMPNet, data: TensorData, cov_reg: float = 0.0, ridge: float = 1e-6) -> np.ndarray:
     """Initialize the decoder's linear part Φ(x)(b + A z) as the PPCA of the training demos
@@ -433,26 +465,81 @@ def init_basis_pca(net: DeepProMPNet, data: TensorData, cov_reg: float = 0.0, ri
     λ = ``cov_reg`` · mean(diag C) (ProMP's regularizer, :meth:`core.promp.ProMP.fit`, uses 0.05):
     it gives the k − rank(C) directions beyond the demos' span a small variance instead of none.
     With λ = 0 those columns stay 0. Returns the standard deviations of the k columns."""
-    cfg = net.cfg
     phi = net.basis_functions(data.x.double()).numpy()  # (T, n_b)
-    y = data.y.double().numpy()  # (D, T, d)
-    gram = phi.T @ phi
-    gram += ridge * np.trace(gram) / gram.shape[0] * np.eye(gram.shape[0])
-    w = np.linalg.solve(gram, np.einsum("tb,ntd->nbd", phi, y))  # (D, n_b, d)
-    w = w.reshape(w.shape[0], -1)
-    mean = w.mean(0)
-    _, sv, vt = np.linalg.svd(w - mean, full_matrices=True)  # vt: all n_b·d directions, data span first
-    eig = np.zeros(vt.shape[0])
-    eig[: sv.size] = sv ** 2 / max(1, w.shape[0] - 1)
-    eig += cov_reg * eig.sum() / eig.size
-    r = min(cfg.latent_dim, vt.shape[0])
-    scale = np.zeros(cfg.latent_dim)
-    scale[:r] = np.sqrt(eig[:r])
-    a = np.zeros((w.shape[1], cfg.latent_dim))
-    a[:, :r] = (vt[:r] * scale[:r, None]).T
+    mean, a, scale = pca_basis(phi, data.y.double().numpy(), net.cfg.latent_dim, cov_reg, ridge)
     net.basis.bias.copy_(torch.as_tensor(mean, dtype=torch.float32))
     net.basis.weight.copy_(torch.as_tensor(a, dtype=torch.float32))
     return scale
+
+
+def linear_map_condition(phi_all: np.ndarray, mean: np.ndarray, a: np.ndarray, sel: np.ndarray, y_via: np.ndarray,
+                         noise: np.ndarray) -> np.ndarray:
+    """MAP (= posterior mean) of the latent linear-Gaussian model y(x) = Φ(x)(b + A z) + ε, z ~ N(0, I),
+    ε_j ~ N(0, noise_j²), given y at the phases ``phi_all[sel]`` (normalized units): the closed form of
+    :meth:`DeepProMP.refine_map` (prior ``standard``) for a decoder with ``residual_scale`` 0.
+
+    phi_all : (T, n_b); mean (n_b·d,), a (n_b·d, k) of :func:`pca_basis`; y_via (V, d); noise (d,).
+    Returns the trajectory at all T phases, (T, d)."""
+    T, n_b = phi_all.shape
+    d = y_via.shape[1]
+    k = a.shape[1]
+    wm = mean.reshape(n_b, d)
+    wa = a.reshape(n_b, d, k)
+    ph = phi_all[sel]  # (V, n_b)
+    jac = np.einsum("vb,bdk->vdk", ph, wa) / noise[None, :, None]  # (V, d, k)
+    res = (y_via - ph @ wm) / noise[None, :]
+    J = jac.reshape(-1, k)
+    z = np.linalg.solve(J.T @ J + np.eye(k), J.T @ res.reshape(-1))
+    return phi_all @ (wm + wa @ z)
+
+
+def cv_basis_hyperparameters(ds: DemoDataset, n_points: int, n_basis: int, basis_width: float = 1.0,
+                             latent_dims=(64,), cov_regs=(0.05,), noise_stds=(1e-3,), n_via: int = 5,
+                             folds: int = 0, draws: int = 4, seed: int = 0) -> dict:
+    """Choose the linear part's latent size, ``basis_cov_reg`` λ and the via-point noise (rad, one value
+    for all joints) of MAP conditioning by K-fold cross-validation on the demonstrations ``ds`` alone.
+
+    Per fold: the normalization (:func:`fit_normalization`) and the PPCA (:func:`pca_basis`) are fitted
+    to the other demos, and each held-out demo is conditioned on ``draws`` sets of ``n_via`` random
+    via-points (:func:`linear_map_condition`, the closed form of MAP refinement with the standard
+    prior); the score is the mean held-out MSE (rad²) over all 100 phases. ``folds`` 0 = leave-one-out.
+    Deterministic in ``seed``.
+
+    Returns {"latent_dim", "basis_cov_reg", "noise_std", "cv_mse", "table": [[k, λ, s, mse], ...]}.
+    """
+    demos = ds.demos
+    n = len(demos)
+    if n < 3:
+        raise ValueError(f"cross-validation needs >= 3 demonstrations, got {n}")
+    folds = n if folds <= 0 else min(int(folds), n)
+    rng = np.random.default_rng(seed)
+    order = rng.permutation(n)
+    fold_of = np.empty(n, dtype=int)
+    fold_of[order] = np.arange(n) % folds
+    x = np.linspace(0.0, 1.0, n_points)
+    phi = phase_basis(x, n_basis, basis_width, ds.phase_type == "rhythmic")
+    y_all = np.stack([d.resampled(n_points) for d in demos])  # (n, T, d) rad
+    sels = [[np.sort(np.random.default_rng([seed, i, r]).choice(n_points, int(n_via), replace=False))
+             for r in range(draws)] for i in range(n)]
+    grid = [(int(k), float(c), float(s)) for k in latent_dims for c in cov_regs for s in noise_stds]
+    err = {g: [] for g in grid}
+    for f in range(folds):
+        tr = np.flatnonzero(fold_of != f)
+        te = np.flatnonzero(fold_of == f)
+        norm = fit_normalization(DemoDataset(tuple(demos[i] for i in tr), ds.source), n_points)
+        yn = (y_all - norm.y_mean) / norm.y_std
+        fits = {(k, c): pca_basis(phi, yn[tr], k, c) for k in {g[0] for g in grid} for c in {g[1] for g in grid}}
+        for (k, c, s) in grid:
+            mean, a, _ = fits[(k, c)]
+            noise = s / np.asarray(norm.y_std, dtype=np.float64)
+            for i in te:
+                for sel in sels[i]:
+                    pred = linear_map_condition(phi, mean, a, sel, yn[i, sel], noise) * norm.y_std + norm.y_mean
+                    err[(k, c, s)].append(float(((pred - y_all[i]) ** 2).mean()))
+    table = [[k, c, s, float(np.mean(err[(k, c, s)]))] for (k, c, s) in grid]
+    best = min(table, key=lambda r: r[3])
+    return {"latent_dim": best[0], "basis_cov_reg": best[1], "noise_std": best[2], "cv_mse": best[3],
+            "folds": folds, "draws": draws, "n_demos": n, "table": table}
 
 
 def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: DemoDataset | None = None):
