@@ -90,3 +90,57 @@ def test_low_information_subsets_come_from_the_phases_where_demos_agree():
                                        torch.Generator().manual_seed(0))
     far = np.min(np.abs(np.linspace(0, 1, 100)[:, None] - np.array([0.0, 0.5, 1.0])), 1) > 0.15
     assert w_plain[:, :100].numpy()[:, far].sum() > 0  # without it, points fall anywhere
+
+
+def test_exp_variance_head_numpy_matches_torch_and_reaches_tiny_precision():
+    import torch
+
+    from deepprompt_ros.core.checkpoint import Normalization
+    from deepprompt_ros.core.model import LOGVAR_MAX, DeepProMPNet, ModelConfig
+    from deepprompt_ros.core.primitive import DeepProMP
+
+    torch.manual_seed(0)
+    net = DeepProMPNet(ModelConfig(n_joints=2, latent_dim=4, hidden=16, variance_head="exp")).double()
+    with torch.no_grad():
+        net.head.bias[4:] = torch.tensor([0.0, 3.0, 8.0, 30.0])  # last one beyond the clamp
+    norm = Normalization(y_mean=np.zeros(2), y_std=np.ones(2), ctx_mean={}, ctx_std={})
+    p = DeepProMP(net.float(), norm, ["a", "b"])
+    x, y = np.array([0.2, 0.7]), np.array([[0.1, -0.3], [0.4, 0.2]])
+    mu_np, var_np = p.encode_via_points(x, y)
+    with torch.no_grad():
+        mu_t, var_t = net.encode_via_points(torch.tensor(x, dtype=torch.float32)[None],
+                                            torch.tensor(y, dtype=torch.float32)[None])
+    np.testing.assert_allclose(mu_np, mu_t[0].numpy(), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(var_np, var_t[0].numpy(), rtol=1e-5)
+    assert np.all(var_np[:, 3] == pytest.approx(np.exp(LOGVAR_MAX) + 1e-4, rel=1e-6))  # clamped, not inf
+    assert np.all(1.0 / var_np[:, 2] < 1e-2)  # a moderate output already says almost nothing
+    with pytest.raises(ValueError, match="variance_head"):
+        ModelConfig(n_joints=1, variance_head="relu")
+
+
+def test_consistency_coverage_reaches_the_encoder_only_when_asked():
+    import torch
+
+    from deepprompt_ros.core.model import DeepProMPNet, ModelConfig
+    from deepprompt_ros.core.train import fit_normalization, loss_fn, to_tensors
+
+    ds = bimodal_sine(16, n_points=30, seed=0)
+    data = to_tensors(ds, fit_normalization(ds, 30), 30)
+    idx = torch.arange(16)
+    grads = {}
+    for mode in ("none", "coverage", "all"):
+        cfg = TrainConfig(n_points=30, latent_dim=4, hidden=16, consistency_weight=1.0, consistency_encoder=mode,
+                          p_empty=0.0, p_via_points=1.0, p_context=0.0)
+        torch.manual_seed(0)
+        net = DeepProMPNet(ModelConfig(n_joints=1, latent_dim=4, hidden=16, context_dims=(("mode", 1),)))
+        # the same draws with and without the term: the difference is the consistency part alone
+        with_term, _, _, _ = loss_fn(net, cfg, data, idx, torch.Generator().manual_seed(1), beta=0.0)
+        cfg0 = dataclasses.replace(cfg, consistency_weight=0.0)
+        without, _, _, _ = loss_fn(net, cfg0, data, idx, torch.Generator().manual_seed(1), beta=0.0)
+        (with_term - without).backward()
+        grads[mode] = (net.via_encoder[0].weight.grad.abs().sum().item(), net.decoder[0].weight.grad.abs().sum().item())
+    assert grads["none"][0] == 0.0 and grads["none"][1] > 0  # a decoder term only
+    assert grads["coverage"][0] > 0 and grads["all"][0] > 0  # z carries the term into the encoder
+    assert grads["coverage"][0] != pytest.approx(grads["all"][0])  # precision part stays out of it
+    with pytest.raises(ValueError, match="consistency_encoder"):
+        TrainConfig(consistency_encoder="both")

@@ -76,7 +76,6 @@ class TrainConfig:
     low_info_fraction: float = 0.2
     consistency_weight: float = 0.0
     prior_kl_weight: float = 0.0
-    aggregate_prior_weight: float = 0.0
     consistency_tol: float = 0.15
     consistency_samples: int = 8
     consistency_encoder: str = "none"
@@ -92,8 +91,7 @@ class TrainConfig:
             (self.latent_dim >= 1 and self.hidden >= 1, "latent_dim and hidden must be >= 1"),
             (self.sigma_y > 0 and self.var_floor > 0, "sigma_y and var_floor must be > 0"),
             (self.beta >= 0, f"beta must be >= 0, got {self.beta}"),
-            (self.prior_kl_weight >= 0 and self.aggregate_prior_weight >= 0,
-             "prior_kl_weight and aggregate_prior_weight must be >= 0"),
+            (self.prior_kl_weight >= 0, f"prior_kl_weight must be >= 0, got {self.prior_kl_weight}"),
             (self.consistency_weight >= 0 and self.consistency_tol > 0,
              "consistency_weight must be >= 0 and consistency_tol > 0"),
             (self.consistency_encoder in CONSISTENCY_ENCODER,
@@ -307,25 +305,6 @@ def consistent_demos(cfg: TrainConfig, data: TensorData, idx, kinds, w_sub) -> t
     return ok | torch.eye(b, dtype=torch.bool)
 
 
-def aggregate_prior_kl(mu: torch.Tensor, var: torch.Tensor) -> torch.Tensor:
-    """KL(N(m, C) ‖ N(0, I)) where (m, C) are the moments of the mixture (1/B) Σ_b N(μ_b, diag σ²_b)
-    (the batch's aggregate posterior): m = mean μ_b, C = Cov(μ_b) + mean diag σ²_b.
-
-    Parameters
-    ----------
-    mu, var : tensor, shape (B, k)
-
-    Returns
-    -------
-    tensor, scalar (0 exactly when the mixture has the prior's mean and covariance)
-    """
-    m = mu.mean(0)
-    d = mu - m
-    cov = d.T @ d / mu.shape[0] + torch.diag(var.mean(0))
-    k = mu.shape[1]
-    return 0.5 * (torch.diagonal(cov).sum() + m @ m - k - torch.logdet(cov))
-
-
 def loss_fn(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, idx, gen, beta: float):
     """Negative ELBO per trajectory (mean over the batch) plus the sample-consistency term.
 
@@ -351,13 +330,6 @@ def loss_fn(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, idx, gen, bet
     y_hat = net.decode(z, data.x)
     nll = 0.5 * ((y - y_hat) ** 2).sum((1, 2)) / cfg.sigma_y ** 2
     loss = nll + beta * kl
-    if cfg.objective == "np" and cfg.aggregate_prior_weight > 0:
-        # The NP KL makes q(z | subset) the moment match of the posteriors q(z | all) of the demos
-        # that agree with the subset; for a subset that agrees with every demo that is the moment
-        # match of the whole cloud. Asking that cloud to have the prior's moments makes the
-        # posterior of uninformative via-points the prior itself (wide), instead of a narrow
-        # Gaussian between the modes. Added per trajectory so its weight is comparable to β.
-        loss = loss + beta * cfg.aggregate_prior_weight * aggregate_prior_kl(mu_a, var_a)
     cons = torch.zeros(())
     if cfg.consistency_weight > 0:
         # Sample consistency (Chamfer distance between sets): the M trajectories decoded from
