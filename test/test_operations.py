@@ -47,10 +47,9 @@ def test_distinguishing_via_points_select_the_right_mode(sine):
         assert (pos if sign > 0 else neg) >= 0.95, (sign, pos, neg)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "open: with via-points on the zero crossings the shipped model puts ~46 % of its samples between "
-    "the modes (ProMP: ~22 %); q(z | uninformative via-points) stays too narrow. See README, Multimodality."))
 def test_zero_crossings_give_both_modes_not_between_and_promp_falls_between(sine):
+    # the paper's multimodality claim: via-points that cannot tell the modes apart leave samples on
+    # BOTH modes, not between them; ProMP's single Gaussian puts them between (README, Multimodality)
     zx, zy = [0.0, 0.5, 1.0], [[0.0], [0.0], [0.0]]
     lat = sine.condition(zx, zy)
     pos, neg, gap = _modes(sine.sample(lat, X, 1000, rng=1))
