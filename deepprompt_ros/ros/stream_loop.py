@@ -463,6 +463,7 @@ class StreamLoop:
         self._next = 0.0
         self.stats = LoopStats()
         self.priority_error = ""
+        self.started = threading.Event()  #: set once the control thread runs (priority_error is final)
 
     # ------------------------------------------------------------------ inputs (any thread)
     def update_measured(self, q: np.ndarray, qd: np.ndarray | None = None) -> None:
@@ -497,6 +498,13 @@ class StreamLoop:
                                "rate of a running goal")
         self._commands.append(("rate", goal, float(rate)))
         return goal
+
+    def summary(self) -> str:
+        """One line about the loop so far (ticks, late ticks, longest tick, CPU per tick, pacing)."""
+        st = self.stats
+        return (f"{st.ticks} ticks, {st.late} late by > 1 period, longest tick {st.max_tick_s * 1e3:.2f} ms, "
+                f"{self.ctl.errors} ruckig errors, {st.cpu_s / max(st.work_ticks, 1) * 1e6:.0f} us CPU per tick; "
+                f"{st.period_summary(self.dt)}")
 
     # ------------------------------------------------------------------ one tick
     def tick(self, next_due: float | None = None) -> None:
@@ -582,6 +590,7 @@ class StreamLoop:
     def _run(self) -> None:
         name_os_thread("control_loop")
         self._set_priority()
+        self.started.set()
         dt = self.dt
         spin = self.config.spin_wait
         perf = time.perf_counter
