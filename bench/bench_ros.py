@@ -4,8 +4,9 @@
     python bench/bench_ros.py --quick    # smoke run: 2 s stream, 20 calls, limits checked on that stream
     python bench/bench_ros.py --sim-param joint_states_rate_hz:=250 --param gil_switch_interval:=0.0005
 
-Processes: sim_bridge (PyBullet Gen3 lite, joint_states at 1 kHz), primitive_server, a stream
-subscriber, a Condition client, and this orchestrator (action client).
+Processes: sim_bridge (PyBullet Gen3 lite, joint_states at 1 kHz), primitive_server (and, with
+its default ``loop_process: true``, its control-loop child process), a stream subscriber, a
+Condition client, and this orchestrator (action client).
 
 Metrics (last line: space-separated name=value pairs):
 

@@ -143,6 +143,8 @@ class PrimitiveServer(Node):
         self.gc = GcMonitor()
         if self._in_process:
             self.loop.start(threaded=cfg.loop_mode == "thread")
+            if cfg.loop_mode == "thread":
+                self.loop.started.wait(2.0)  # its priority has been set (or refused)
         self._srv_thread = threading.Thread(target=self._serve, name="services", daemon=True)
         self._srv_thread.start()
         if self._in_process and self.loop.priority_error:
