@@ -79,6 +79,7 @@ class ControlProcess:
         self.restarts = 0
         self.priority_error = ""
         self.pid = 0
+        self._ready = threading.Event()
         self._spawn()
 
     # ------------------------------------------------------------------ child lifecycle
@@ -152,6 +153,7 @@ class ControlProcess:
                 goal._finish(outcome)
         elif kind == "ready":
             _, pid, self.priority_error = msg
+            self._ready.set()
             self._log.info(f"control loop running in its own process (pid {pid})")
             if self.priority_error:
                 self._log.warn(self.priority_error)
@@ -161,6 +163,10 @@ class ControlProcess:
             self._conn.send(msg)
         except OSError:  # the child is gone: the link thread reports it and fails the goals
             pass
+
+    def wait_ready(self, timeout: float) -> bool:
+        """Wait until the (first) child runs: its node, publishers and control thread exist."""
+        return self._ready.wait(timeout)
 
     # ------------------------------------------------------------------ the loop's interface
     def execute(self, goal: ExecutionGoal) -> ExecutionGoal:

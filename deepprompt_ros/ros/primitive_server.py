@@ -87,14 +87,29 @@ class PrimitiveServer(Node):
             self.robot = load_robot(cfg.robot)
         except (ValueError, FileNotFoundError, OSError) as exc:
             raise sl.ConfigError(f"robot '{cfg.robot}' cannot be loaded: {exc}") from None
-        prims = self._load_primitives(cfg)
         self.limits = sl.robot_limits(self.robot, cfg)
-        self.core = sl.PrimitiveServerCore(prims, cfg, self.limits)
         self.names = list(self.robot.joint_names)
         rate = cfg.control_rate_hz or self.robot.control_rate_hz
         topic = f"{cfg.controller}/joint_trajectory"
         self._io = None
         self._in_process = not (cfg.loop_process and cfg.loop_mode == "thread")
+        if not self._in_process:
+            # the loop in a child process with its own interpreter (ros.control_process), started
+            # now so that its start-up overlaps the loading of the primitives; topic names resolved
+            # here so that this node's namespace and remappings apply
+            self.loop = ControlProcess(dict(
+                limits=self.limits, dt=1.0 / rate, cfg=cfg, names=self.names,
+                command_topic=self.resolve_topic_name(cfg.command_topic) if cfg.command_topic else "",
+                trajectory_topic=self.resolve_topic_name(topic) if cfg.controller else "",
+                joint_states_topic=self.resolve_topic_name(cfg.joint_states_topic),
+                node_name=f"{self.get_name()}_control", namespace=self.get_namespace()), log)
+        try:
+            prims = self._load_primitives(cfg)
+        except BaseException:
+            if not self._in_process:
+                self.loop.shutdown()
+            raise
+        self.core = sl.PrimitiveServerCore(prims, cfg, self.limits)
         if self._in_process:
             # the loop's publishers and joint_states reader on this node (see ros.loop_io): joint_states
             # are taken by the control thread from a subscription of a helper node that no executor
@@ -106,15 +121,10 @@ class PrimitiveServer(Node):
                                    on_error=lambda m: log.error(m, throttle_duration_sec=1.0),
                                    poll_measured=self._io.poll_joint_state)
             self._io.on_measured = self.loop.update_measured
-        else:
-            # the loop in a child process with its own interpreter (ros.control_process); topic
-            # names resolved here so that this node's namespace and remappings apply
-            self.loop = ControlProcess(dict(
-                limits=self.limits, dt=1.0 / rate, cfg=cfg, names=self.names,
-                command_topic=self.resolve_topic_name(cfg.command_topic) if cfg.command_topic else "",
-                trajectory_topic=self.resolve_topic_name(topic) if cfg.controller else "",
-                joint_states_topic=self.resolve_topic_name(cfg.joint_states_topic),
-                node_name=f"{self.get_name()}_control", namespace=self.get_namespace()), log)
+        elif not self.loop.wait_ready(60.0):
+            # its publishers exist before this node offers Execute (subscribers discover them meanwhile)
+            self.loop.shutdown()
+            raise sl.ConfigError("the control process did not start within 60 s (see the log above)")
         # time spent inside each service callback (s), the latest 4096 calls: the server's share of a round trip
         self._handled = {name: collections.deque(maxlen=4096)
                          for name in ("condition", "blend", "sample", "list_primitives", "set_phase_rate")}
