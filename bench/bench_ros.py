@@ -4,8 +4,9 @@
     python bench/bench_ros.py --quick    # smoke run: 2 s stream, 20 calls, limits checked on that stream
     python bench/bench_ros.py --sim-param joint_states_rate_hz:=250 --param gil_switch_interval:=0.0005
 
-Processes: sim_bridge (PyBullet Gen3 lite, joint_states at 1 kHz), primitive_server, a stream
-subscriber, a Condition client, and this orchestrator (action client).
+Processes: sim_bridge (PyBullet Gen3 lite, joint_states at 1 kHz), primitive_server (and, with
+its default ``loop_process: true``, its control-loop child process), a stream subscriber, a
+Condition client, and this orchestrator (action client).
 
 Metrics (last line: space-separated name=value pairs):
 
@@ -27,6 +28,7 @@ Metrics (last line: space-separated name=value pairs):
   publication instants (its log): pacing alone, without transport and subscriber scheduling;
 * ``cpu_<process>_pct`` -- CPU time of each process (user + system, /proc) per wall-clock second
   while the stream and the Condition client ran, in % of one core (the machine has os.cpu_count());
+  ``cpu_control_pct`` is the server's control-loop child process (``loop_process: true``);
 * ``server_gc_count``, ``server_gc_max_ms`` -- cyclic garbage collections in the server and the
   longest (each holds the interpreter lock);
 * ``limit_violations`` -- over random executions in the sim (random via-points, durations,
@@ -313,6 +315,16 @@ class Orchestrator:
         self.c.close()
 
 
+class _Pid:
+    """A process that is not ours to stop (the server's control process), for cpu_seconds."""
+
+    def __init__(self, pid: int):
+        self.pid = pid
+
+    def running(self) -> bool:
+        return pathlib.Path(f"/proc/{self.pid}").exists()
+
+
 def cpu_seconds(pid: int | str = "self") -> float:
     """User + system CPU time of a process so far (Linux /proc), in seconds."""
     fields = pathlib.Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -447,6 +459,9 @@ def main(argv=None) -> int:
         gh, res_fut = orch.send(r.handle, stream_s + 1.5)
         orch.c.spin_for(0.5)
         roles = {"sim_bridge": procs[0], "server": server, "subscriber": sub, "client": cli}
+        child = re.findall(r"control loop running in its own process \(pid (\d+)\)", server.output())
+        if child:  # loop_process: the control loop's own process (cpu_server_pct is then the rest)
+            roles["control"] = _Pid(int(child[-1]))
         cpu0 = {k: cpu_seconds(p.pid) for k, p in roles.items()}
         cpu0["orchestrator"], w0 = cpu_seconds(), time.monotonic()
         go(g_cli)

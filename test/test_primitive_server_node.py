@@ -91,6 +91,9 @@ def setup(tmp_path_factory):
             cmd = client.subscribe("/joint_command", JointState, 10000)
             assert client.wait_for(lambda: "receiving joint_states" in procs["server"].output(), 60), (
                 procs["server"].output_tail() + procs["sim"].output_tail())
+            # published by the server's control process, a DDS participant discovered on its own
+            assert client.wait_for_publisher("/joint_command", 60), procs["server"].output_tail()
+            assert client.wait_for_publisher(JTC_TOPIC, 60), procs["server"].output_tail()
             yield dict(client=client, ac=ac, jtc=jtc, cmd=cmd, procs=procs, tmp=tmp)
             ac.destroy()
     finally:

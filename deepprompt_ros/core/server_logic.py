@@ -115,6 +115,11 @@ class ServerConfig:
     realtime_priority: int = _param(0, "SCHED_FIFO priority of the control thread ('thread' mode); 0 = normal "
                                     "scheduling. Needs CAP_SYS_NICE; refused -> a warning, normal scheduling.",
                                     min=0, max=99)
+    loop_process: bool = _param(True, "'thread' mode: run the control loop (command stream, JointTrajectory "
+                                "output, joint_states reader) in a child process with its own interpreter, "
+                                "so that service handlers and the 1 kHz loop do not share one interpreter "
+                                "lock; false = a thread of the server's process. 'timer' mode is always "
+                                "in-process.")
     velocity_scale: float = _param(1.0, "Fraction of the robot's velocity limits used.", min=1e-3, max=1.0)
     acceleration_scale: float = _param(1.0, "Fraction of the robot's acceleration limits used.", min=1e-3, max=1.0)
     jerk_scale: float = _param(1.0, "Fraction of the robot's jerk limits used.", min=1e-3, max=1.0)

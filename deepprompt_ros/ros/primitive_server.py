@@ -16,10 +16,14 @@ Interfaces (``~`` = the node's name, ``/primitive_server`` by default):
   rest) and ``joint_command`` (sensor_msgs/JointState, one per control tick: names = the robot's
   joints, position + velocity; what sim_bridge consumes).
 
-Threads: ``control_loop`` (the command stream, see ros.stream_loop), ``jtc_publisher``
-(JointTrajectory messages), ``services`` (waits on the five service handles and answers each request
-itself) and the executor's (action, parameters). Start-up objects are frozen out of the garbage
-collector (``gc.freeze``): a full collection over them stalled every thread for 50-220 ms.
+Processes and threads: by default (``loop_process: true``) the command stream runs in a child
+process, ``python -m deepprompt_ros.ros.control_process`` (threads ``control_loop`` and
+``jtc_publisher`` of ros.stream_loop, its own rclpy context and interpreter lock; see that module
+for the link, its lifetime and crash handling). With ``loop_process: false`` or ``loop_mode:
+timer`` those threads run in this process. Here: ``services`` (waits on the five service handles
+and answers each request itself), the executor's (action, parameters) and ``control_link`` (the
+child's status and outcomes). Start-up objects are frozen out of the garbage collector
+(``gc.freeze``): a full collection over them stalled every thread for 50-220 ms.
 
 Start-up: invalid parameters or no servable primitive -> a log line per problem and exit code 2.
 Primitives that cannot be served (missing file, joints that are not the robot's, corrupt model)
@@ -57,88 +61,16 @@ from rclpy.exceptions import InvalidHandle
 from rclpy.guard_condition import GuardCondition
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import JointState
-from trajectory_msgs.msg import JointTrajectory
 
 from deepprompt_ros import paths
 from deepprompt_ros.core import server_logic as sl
 from deepprompt_ros.ros import conversions as conv
-from deepprompt_ros.ros.stream_loop import (BrakeTail, ExecutionController, ExecutionGoal, GcMonitor, StreamLoop,
-                                            freeze_startup_objects, name_os_thread, set_switch_interval,
-                                            trajectory_points)
+from deepprompt_ros.ros.control_process import ControlProcess
+from deepprompt_ros.ros.loop_io import LoopIO, TrajectorySerializer
+from deepprompt_ros.ros.stream_loop import (ExecutionController, ExecutionGoal, GcMonitor, StreamLoop,
+                                            freeze_startup_objects, name_os_thread, set_switch_interval)
 
 __all__ = ["PrimitiveServer", "TrajectorySerializer", "main"]
-
-
-class TrajectorySerializer:
-    """``trajectory_msgs/JointTrajectory`` bytes (positions, velocities, accelerations per point) for
-    fixed joint names, equal to serializing :func:`conversions.joint_trajectory`'s message.
-
-    One template per number of points is serialized once with distinct sentinel numbers; each call
-    writes the stamp, the numbers and the times_from_start into a copy (rclpy publishers accept
-    bytes). Building the message in Python cost ~0.55 ms for 6 points, which the publishing thread
-    spent holding the interpreter lock that the control thread needs every period.
-
-    Parameters
-    ----------
-    names : sequence of str, length d
-    """
-
-    _SEC, _NSEC = 0x5A3C2E1F, 0x2B4D6F13
-
-    def __init__(self, names):
-        self.names = [str(x) for x in names]
-        self._templates: dict = {}
-
-    def _template(self, n_points: int):
-        from builtin_interfaces.msg import Duration, Time
-        from rclpy.serialization import serialize_message
-        from trajectory_msgs.msg import JointTrajectoryPoint
-
-        d = len(self.names)
-        values = 1.0e300 + 1.0e285 * np.arange(1, 3 * n_points * d + 1).reshape(n_points, 3, d)
-        msg = JointTrajectory(joint_names=self.names)
-        msg.header.stamp = Time(sec=self._SEC, nanosec=self._NSEC)
-        msg.points = [JointTrajectoryPoint(positions=v[0].tolist(), velocities=v[1].tolist(),
-                                           accelerations=v[2].tolist(),
-                                           time_from_start=Duration(sec=0x3C000000 + i, nanosec=0x4D000000 + i))
-                      for i, v in enumerate(values)]
-        data = serialize_message(msg)
-        if data[:2] != b"\x00\x01":
-            raise ValueError("JointTrajectory serialization is not little-endian CDR")
-
-        def find(pattern: bytes) -> int:
-            i = data.find(pattern)
-            if i < 0 or data.find(pattern, i + 1) >= 0 or (i - 4) % 4:
-                raise ValueError("JointTrajectory template layout not recognised")
-            return i
-
-        # every number is aligned to its size after the 4-byte encapsulation header: index the
-        # buffer from there as float64 (numbers) and uint32 (stamp, times)
-        f64 = np.array([find(np.float64(v).tobytes()) for v in values.ravel()], dtype=np.int64)
-        if np.any((f64 - 4) % 8):
-            raise ValueError("JointTrajectory template layout not recognised")
-        u32 = [find(np.array([self._SEC, self._NSEC], "<u4").tobytes())]
-        u32 += [find(np.array([0x3C000000 + i, 0x4D000000 + i], "<u4").tobytes()) for i in range(n_points)]
-        return bytearray(data), (f64 - 4) // 8, (np.array(u32) - 4) // 4
-
-    def __call__(self, times, q, qd, qdd, stamp_ns: int = 0) -> bytes:
-        """times (P,) s, >= 0 and strictly increasing; q, qd, qdd (P, d); header.stamp in ns."""
-        times = np.asarray(times, dtype=np.float64)
-        if times.size and (times[0] < 0 or np.any(np.diff(times) <= 0)):
-            raise ValueError(f"time_from_start must be >= 0 and strictly increasing; got {times.tolist()}")
-        tpl = self._templates.get(times.size)
-        if tpl is None:
-            tpl = self._templates[times.size] = self._template(times.size)
-        template, f64, u32 = tpl
-        buf = bytearray(template)
-        np.frombuffer(buf, "<f8", (len(buf) - 4) // 8, 4)[f64] = np.stack([q, qd, qdd], axis=1).ravel()
-        ns = np.empty(times.size + 1, dtype=np.int64)
-        ns[0], ns[1:] = stamp_ns, np.round(times * 1e9)
-        stamps = np.stack([ns // 1_000_000_000, ns % 1_000_000_000], axis=1).astype("<u4")
-        np.frombuffer(buf, "<u4", (len(buf) - 4) // 4, 4)[np.stack([u32, u32 + 1], axis=1)] = stamps
-        return bytes(buf)
 
 
 class PrimitiveServer(Node):
@@ -155,33 +87,44 @@ class PrimitiveServer(Node):
             self.robot = load_robot(cfg.robot)
         except (ValueError, FileNotFoundError, OSError) as exc:
             raise sl.ConfigError(f"robot '{cfg.robot}' cannot be loaded: {exc}") from None
-        prims = self._load_primitives(cfg)
         self.limits = sl.robot_limits(self.robot, cfg)
-        self.core = sl.PrimitiveServerCore(prims, cfg, self.limits)
         self.names = list(self.robot.joint_names)
         rate = cfg.control_rate_hz or self.robot.control_rate_hz
-        ctl = ExecutionController(self.limits, 1.0 / rate, cfg)
-        self._tail = BrakeTail(self.limits)
-
-        self._cmd_cdr = conv.JointStateSerializer(self.names)
-        self._traj_cdr = TrajectorySerializer(self.names)
-        # deep history: a reliable subscriber that stalls for < 0.2 s loses no command
-        self._cmd_pub = self.create_publisher(JointState, cfg.command_topic, 200) if cfg.command_topic else None
         topic = f"{cfg.controller}/joint_trajectory"
-        self._traj_pub = self.create_publisher(JointTrajectory, topic, 10) if cfg.controller else None
-        # joint_states are taken by the control thread (StreamLoop.poll) from a subscription of a
-        # helper node that no executor spins: no per-message executor dispatch at 1 kHz
-        self._state_node = rclpy.create_node(f"{self.get_name()}_state_reader", namespace=self.get_namespace(),
-                                             context=self.context, start_parameter_services=False)
-        self._state_sub = self._state_node.create_subscription(
-            JointState, cfg.joint_states_topic, lambda msg: None,
-            QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
-        self._state_index: tuple | None = None
-        self._perf_to_ros = self.get_clock().now().nanoseconds - int(time.perf_counter() * 1e9)
-        self.loop = StreamLoop(ctl, cfg, self._publish_command if self._cmd_pub else None,
-                               self._publish_trajectory if self._traj_pub else None,
-                               on_error=lambda m: log.error(m, throttle_duration_sec=1.0),
-                               poll_measured=self._poll_joint_state)
+        self._io = None
+        self._in_process = not (cfg.loop_process and cfg.loop_mode == "thread")
+        if not self._in_process:
+            # the loop in a child process with its own interpreter (ros.control_process), started
+            # now so that its start-up overlaps the loading of the primitives; topic names resolved
+            # here so that this node's namespace and remappings apply
+            self.loop = ControlProcess(dict(
+                limits=self.limits, dt=1.0 / rate, cfg=cfg, names=self.names,
+                command_topic=self.resolve_topic_name(cfg.command_topic) if cfg.command_topic else "",
+                trajectory_topic=self.resolve_topic_name(topic) if cfg.controller else "",
+                joint_states_topic=self.resolve_topic_name(cfg.joint_states_topic),
+                node_name=f"{self.get_name()}_control", namespace=self.get_namespace()), log)
+        try:
+            prims = self._load_primitives(cfg)
+        except BaseException:
+            if not self._in_process:
+                self.loop.shutdown()
+            raise
+        self.core = sl.PrimitiveServerCore(prims, cfg, self.limits)
+        if self._in_process:
+            # the loop's publishers and joint_states reader on this node (see ros.loop_io): joint_states
+            # are taken by the control thread from a subscription of a helper node that no executor
+            # spins (no per-message executor dispatch at 1 kHz)
+            self._io = LoopIO(self, self.names, self.limits, cfg, cfg.command_topic,
+                              topic if cfg.controller else "", cfg.joint_states_topic)
+            self.loop = StreamLoop(ExecutionController(self.limits, 1.0 / rate, cfg), cfg, self._io.publish_command,
+                                   self._io.publish_trajectory,
+                                   on_error=lambda m: log.error(m, throttle_duration_sec=1.0),
+                                   poll_measured=self._io.poll_joint_state)
+            self._io.on_measured = self.loop.update_measured
+        elif not self.loop.wait_ready(60.0):
+            # its publishers exist before this node offers Execute (subscribers discover them meanwhile)
+            self.loop.shutdown()
+            raise sl.ConfigError("the control process did not start within 60 s (see the log above)")
         # time spent inside each service callback (s), the latest 4096 calls: the server's share of a round trip
         self._handled = {name: collections.deque(maxlen=4096)
                          for name in ("condition", "blend", "sample", "list_primitives", "set_phase_rate")}
@@ -208,13 +151,17 @@ class PrimitiveServer(Node):
         if cfg.loop_mode == "timer":
             self.create_timer(1.0 / rate, self.loop.timer_tick, callback_group=MutuallyExclusiveCallbackGroup())
         self.gc = GcMonitor()
-        self.loop.start(threaded=cfg.loop_mode == "thread")
+        if self._in_process:
+            self.loop.start(threaded=cfg.loop_mode == "thread")
+            if cfg.loop_mode == "thread":
+                self.loop.started.wait(2.0)  # its priority has been set (or refused)
         self._srv_thread = threading.Thread(target=self._serve, name="services", daemon=True)
         self._srv_thread.start()
-        if self.loop.priority_error:
+        if self._in_process and self.loop.priority_error:
             log.warn(self.loop.priority_error)
+        where = "in this process" if self._in_process else f"in child process {self.loop.pid}"
         log.info(f"serving {len(prims)} primitive(s) [{', '.join(sorted(prims))}] for robot '{self.robot.name}' "
-                 f"({len(self.names)} joints), control loop {rate:g} Hz ({cfg.loop_mode}), commands on "
+                 f"({len(self.names)} joints), control loop {rate:g} Hz ({cfg.loop_mode}, {where}), commands on "
                  f"{cfg.command_topic or '(off)'} and {topic if cfg.controller else '(no JointTrajectory)'}")
 
     # ------------------------------------------------------------------ start-up
@@ -263,50 +210,6 @@ class PrimitiveServer(Node):
             raise sl.ConfigError(f"no servable primitive in '{file}' ({len(entries)} entries, "
                                  f"{len(errors) + len(load_errors)} refused, see above)")
         return prims
-
-    # ------------------------------------------------------------------ outputs (control threads)
-    def _publish_command(self, q, qd, qdd, due: float) -> None:
-        # pre-serialized JointState with the numbers patched in (~10 us instead of ~100 us);
-        # header.stamp = the tick's nominal time
-        self._cmd_pub.publish(self._cmd_cdr(q, qd, self._perf_to_ros + int(due * 1e9)))
-
-    def _publish_trajectory(self, snap) -> None:
-        times, q, qd, qdd = trajectory_points(snap, self._tail)
-        late = time.perf_counter() - snap.t0  # seconds since the snapshot's time origin
-        if self.cfg.trajectory_stamp == "now":
-            stamp = max(self.get_clock().now().nanoseconds - int(late * 1e9), 0)
-        else:
-            stamp, keep = 0, times > late
-            times, q, qd, qdd = times[keep] - late, q[keep], qd[keep], qdd[keep]
-            if times.size == 0:
-                return
-        self._traj_pub.publish(self._traj_cdr(times, q, qd, qdd, stamp_ns=stamp))
-
-    def _poll_joint_state(self) -> None:
-        """Take the newest joint_states message (control thread) and hand it to the loop."""
-        sub, msg = self._state_sub, None
-        with sub.handle:
-            while (taken := sub.handle.take_message(sub.msg_type, sub.raw)) is not None:
-                msg = taken[0]
-        if msg is None:
-            return
-        try:
-            key = tuple(msg.name)
-            if self._state_index is None or self._state_index[0] != key:  # validate a new layout once
-                js = conv.joint_state_to_arrays(msg)
-                order = conv.reorder_joints(js.names, np.arange(len(js.names)), self.names, label="joint_states")
-                self._state_index = (key, order.astype(int))
-            idx = self._state_index[1]
-            q = np.asarray(msg.position, dtype=np.float64)[idx]
-            qd = np.asarray(msg.velocity, dtype=np.float64)[idx] if len(msg.velocity) == len(key) else None
-            if not np.all(np.isfinite(q)):
-                raise ValueError("position contains NaN or inf")
-        except (ValueError, IndexError) as exc:
-            self.get_logger().warn(f"joint_states ignored: {exc}", throttle_duration_sec=2.0)
-            return
-        if self.loop.measured is None:
-            self.get_logger().info(f"receiving joint_states on '{self._state_sub.topic_name}'")
-        self.loop.update_measured(q, qd)
 
     # ------------------------------------------------------------------ services
     def _guard(self, name, fn):
@@ -411,12 +314,9 @@ class PrimitiveServer(Node):
             self.get_logger().error(f"execute failed:\n{traceback.format_exc()}")
             result.code.value, result.message = int(sl.Code.INTERNAL_ERROR), f"internal error: {exc!r}"
         result.success = result.code.value == sl.Code.SUCCESS
-        st = self.loop.stats
         self.get_logger().info(
             f"execute '{g.handle}': code {result.code.value} ({result.message}); control loop so far: "
-            f"{st.ticks} ticks, {st.late} late by > 1 period, longest tick {st.max_tick_s * 1e3:.2f} ms, "
-            f"{self.loop.ctl.errors} ruckig errors, {st.cpu_s / max(st.work_ticks, 1) * 1e6:.0f} us CPU per tick; "
-            f"{st.period_summary(self.loop.dt)}; {self.handling_summary()}; {self.gc.summary()}")
+            f"{self.loop.summary()}; {self.handling_summary()}; {self.gc.summary()}")
         try:
             if result.success:
                 goal_handle.succeed()
@@ -470,7 +370,8 @@ class PrimitiveServer(Node):
         self._srv_thread.join(2.0)
         self.loop.shutdown()
         self._srv_node.destroy_node()
-        self._state_node.destroy_node()
+        if self._io is not None:
+            self._io.destroy()
 
 
 def main(args=None) -> int:

@@ -50,7 +50,7 @@ from ..core.streaming import JointLimits, RuckigStreamer, StreamStatus
 
 __all__ = ["Stage", "Outcome", "Progress", "MeasuredState", "Sample", "Snapshot", "ExecutionGoal",
            "ExecutionController", "StreamLoop", "LoopStats", "BrakeTail", "trajectory_points", "GcMonitor",
-           "name_os_thread", "set_switch_interval"]
+           "name_os_thread", "set_switch_interval", "set_fifo_priority"]
 
 
 class Stage(enum.Enum):
@@ -463,6 +463,7 @@ class StreamLoop:
         self._next = 0.0
         self.stats = LoopStats()
         self.priority_error = ""
+        self.started = threading.Event()  #: set once the control thread runs (priority_error is final)
 
     # ------------------------------------------------------------------ inputs (any thread)
     def update_measured(self, q: np.ndarray, qd: np.ndarray | None = None) -> None:
@@ -497,6 +498,13 @@ class StreamLoop:
                                "rate of a running goal")
         self._commands.append(("rate", goal, float(rate)))
         return goal
+
+    def summary(self) -> str:
+        """One line about the loop so far (ticks, late ticks, longest tick, CPU per tick, pacing)."""
+        st = self.stats
+        return (f"{st.ticks} ticks, {st.late} late by > 1 period, longest tick {st.max_tick_s * 1e3:.2f} ms, "
+                f"{self.ctl.errors} ruckig errors, {st.cpu_s / max(st.work_ticks, 1) * 1e6:.0f} us CPU per tick; "
+                f"{st.period_summary(self.dt)}")
 
     # ------------------------------------------------------------------ one tick
     def tick(self, next_due: float | None = None) -> None:
@@ -571,17 +579,15 @@ class StreamLoop:
         self.stats.max_tick_s = max(self.stats.max_tick_s, time.perf_counter() - t0)
 
     def _set_priority(self) -> None:
+        """SCHED_FIFO at ``realtime_priority`` for the calling thread (the control thread)."""
         prio = self.config.realtime_priority
-        if prio <= 0 or not hasattr(os, "sched_setscheduler"):
-            return
-        try:
-            os.sched_setscheduler(threading.get_native_id(), os.SCHED_FIFO, os.sched_param(prio))
-        except (OSError, PermissionError) as exc:
-            self.priority_error = f"SCHED_FIFO priority {prio} refused ({exc}); normal scheduling"
+        if prio > 0:
+            self.priority_error = set_fifo_priority(prio)
 
     def _run(self) -> None:
         name_os_thread("control_loop")
         self._set_priority()
+        self.started.set()
         dt = self.dt
         spin = self.config.spin_wait
         perf = time.perf_counter
@@ -692,6 +698,17 @@ def name_os_thread(name: str) -> None:
         ctypes.CDLL(None).prctl(15, name.encode()[:15], 0, 0, 0)  # PR_SET_NAME
     except (OSError, AttributeError):
         pass
+
+
+def set_fifo_priority(priority: int) -> str:
+    """SCHED_FIFO ``priority`` for the calling thread; '' or why it was refused (then unchanged)."""
+    if not hasattr(os, "sched_setscheduler"):
+        return "SCHED_FIFO is not available on this platform; normal scheduling"
+    try:
+        os.sched_setscheduler(threading.get_native_id(), os.SCHED_FIFO, os.sched_param(priority))
+    except (OSError, PermissionError) as exc:
+        return f"SCHED_FIFO priority {priority} refused ({exc}); normal scheduling"
+    return ""
 
 
 def set_switch_interval(seconds: float) -> float:

@@ -1,0 +1,348 @@
+"""The 1 kHz control loop of primitive_server in a process of its own (``loop_process: true``).
+
+Why: in one interpreter the control thread and the service handlers share one interpreter lock.
+With both in the node's process, a Condition request that takes ~2 ms alone took 8.8 ms (p50)
+inside the handler and the loop missed thousands of periods per minute (README "Measured
+figures"). Here the child process owns everything that runs per tick: the
+:class:`~deepprompt_ros.ros.stream_loop.StreamLoop` with its controller, the ``joint_command``
+and JointTrajectory publishers and the joint_states reader (:class:`~deepprompt_ros.ros.loop_io.LoopIO`),
+on its own rclpy context and node (``<server>_control``, same namespace, topic names resolved by
+the server so remappings apply). The server keeps the services and the Execute action.
+
+Link: one Unix socket pair (``multiprocessing.connection.Connection``, pickled tuples).
+
+* server -> child: ``("init", {...})`` once (limits, dt, ServerConfig, joint names, topics, node
+  name), then ``("start", key, ExecutionPlan)`` (the per-Execute decoded dense trajectory),
+  ``("cancel", key)``, ``("rate", key, phase_rate)``, ``("stop",)``;
+* child -> server: ``("ready", pid, priority_error)``, every ``STATUS_PERIOD`` s
+  ``("status", joint_states stamp, key, Stage, Progress)`` of the running goal (Execute feedback,
+  SetPhaseRate's check, the stale check of a new Execute), ``("done", key, Outcome, loop summary)``
+  when a goal's last sample has been published.
+
+Lifetime: the child asks the kernel to kill it when the server dies (``PR_SET_PDEATHSIG``),
+exits when the link closes, and ignores SIGINT (it shares the server's process group; the
+server stops it with ``("stop",)`` on its way down). If the child exits unexpectedly, every
+pending goal ends with INTERNAL_ERROR (the action never hangs), the error is logged, and a new
+child is started (at most ``MAX_RESTARTS`` times).
+"""
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import itertools  # noqa: E402
+import math  # noqa: E402
+import signal  # noqa: E402
+import socket  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import threading  # noqa: E402
+import time  # noqa: E402
+from multiprocessing.connection import Connection  # noqa: E402
+
+from deepprompt_ros.core.server_logic import Code, RequestError  # noqa: E402
+from deepprompt_ros.ros.stream_loop import ExecutionGoal, Outcome, Stage, name_os_thread  # noqa: E402
+
+__all__ = ["ControlProcess", "main"]
+
+STATUS_PERIOD = 0.01  #: s between two status messages of the child
+
+
+class ControlProcess:
+    """Server-side proxy of the control loop in a child process; the same interface as the
+    in-process :class:`~deepprompt_ros.ros.stream_loop.StreamLoop` offers the node
+    (``execute``, ``cancel``, ``set_rate``, ``active_goal``, ``measured_age``, ``summary``,
+    ``shutdown``).
+
+    Parameters
+    ----------
+    init : dict
+        limits (JointLimits), dt (s), cfg (ServerConfig), names (joint names), command_topic,
+        trajectory_topic, joint_states_topic (resolved; '' = off), node_name, namespace.
+    logger : rclpy logger of the server (child exits and restarts are reported there).
+    """
+
+    MAX_RESTARTS = 5
+
+    def __init__(self, init: dict, logger):
+        self._init = dict(init)
+        self._log = logger
+        self._lock = threading.Lock()
+        self._goals: dict[int, ExecutionGoal] = {}
+        self._keys = itertools.count(1)
+        self._latest: ExecutionGoal | None = None
+        self._stamp: float | None = None
+        self._summary = "no goal finished yet"
+        self._stopping = False
+        self._dead = ""          # why no child runs ('' = one runs)
+        self.restarts = 0
+        self.priority_error = ""
+        self.pid = 0
+        self._ready = threading.Event()
+        self._spawn()
+
+    # ------------------------------------------------------------------ child lifecycle
+    def _spawn(self) -> None:
+        ours, theirs = socket.socketpair()
+        fd = theirs.fileno()
+        self.proc = subprocess.Popen([sys.executable, "-m", "deepprompt_ros.ros.control_process", str(fd),
+                                      str(os.getpid())], pass_fds=(fd,), stdin=subprocess.DEVNULL)
+        theirs.close()
+        self.pid = self.proc.pid
+        self._conn = Connection(ours.detach())
+        self._stamp = None
+        self._conn.send(("init", self._init))
+        self._reader = threading.Thread(target=self._read, args=(self._conn, self.proc), name="control_link",
+                                        daemon=True)
+        self._reader.start()
+
+    def _read(self, conn: Connection, proc: subprocess.Popen) -> None:
+        name_os_thread("control_link")
+        try:
+            while True:
+                self._handle(conn.recv())
+        except (EOFError, OSError):
+            pass
+        except Exception as exc:  # a message we cannot read: treat the link as broken
+            self._log.error(f"control process link failed: {exc!r}")
+        try:
+            code = proc.wait(2.0)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            code = proc.wait()
+        conn.close()
+        if self._stopping:
+            return
+        why = f"the control process (pid {proc.pid}) exited unexpectedly with code {code}"
+        with self._lock:
+            self._dead = why
+            pending, self._goals = list(self._goals.values()), {}
+            self._stamp = None
+        for goal in pending:
+            goal._finish(Outcome(Code.INTERNAL_ERROR, f"{why}; the command stream stopped", goal.max_tracking_error,
+                                 goal.progress.phase, goal.progress.cycle))
+        self._log.error(why + (f"; {len(pending)} goal(s) aborted" if pending else ""))
+        with self._lock:
+            if self._stopping:
+                return
+            if self.restarts >= self.MAX_RESTARTS:
+                self._dead = why + f" (not restarted: {self.restarts} restarts already)"
+                return
+            self.restarts += 1
+            self._spawn()
+            self._dead = ""
+        self._log.warn(f"control process restarted (pid {self.pid}, restart {self.restarts})")
+
+    def _handle(self, msg) -> None:
+        kind = msg[0]
+        if kind == "status":
+            _, stamp, key, stage, progress = msg
+            self._stamp = stamp
+            goal = self._goals.get(key)
+            if goal is not None and progress is not None and not goal.done.is_set():
+                goal._progress, goal._tracking_error = progress, progress.tracking_error
+                goal.stage = stage
+        elif kind == "done":
+            _, key, outcome, summary = msg
+            self._summary = summary
+            with self._lock:
+                goal = self._goals.pop(key, None)
+            if goal is not None:
+                goal.max_tracking_error = max(goal.max_tracking_error, outcome.max_tracking_error)
+                goal._finish(outcome)
+        elif kind == "ready":
+            _, pid, self.priority_error = msg
+            self._ready.set()
+            self._log.info(f"control loop running in its own process (pid {pid})")
+            if self.priority_error:
+                self._log.warn(self.priority_error)
+
+    def _send(self, msg) -> None:
+        try:
+            self._conn.send(msg)
+        except OSError:  # the child is gone: the link thread reports it and fails the goals
+            pass
+
+    def wait_ready(self, timeout: float) -> bool:
+        """Wait until the (first) child runs: its node, publishers and control thread exist."""
+        return self._ready.wait(timeout)
+
+    # ------------------------------------------------------------------ the loop's interface
+    def execute(self, goal: ExecutionGoal) -> ExecutionGoal:
+        with self._lock:
+            if self._dead:
+                goal._finish(Outcome(Code.INTERNAL_ERROR, f"no control loop: {self._dead}", 0.0,
+                                     goal.plan.start_phase, 0))
+                return goal
+            goal._link_key = key = next(self._keys)
+            self._goals[key] = goal
+            self._latest = goal
+            self._send(("start", key, goal.plan))
+        return goal
+
+    def cancel(self, goal: ExecutionGoal) -> None:
+        key = getattr(goal, "_link_key", None)
+        if key is not None and not goal.done.is_set():
+            with self._lock:
+                self._send(("cancel", key))
+
+    @property
+    def active_goal(self) -> ExecutionGoal | None:
+        g = self._latest
+        return g if g is not None and not g.done.is_set() else None
+
+    def set_rate(self, rate: float) -> ExecutionGoal:
+        goal = self.active_goal
+        if goal is None or goal.stage in (Stage.STOPPING, Stage.DONE):
+            raise RequestError(Code.NO_ACTIVE_EXECUTION, "no Execute goal is running; SetPhaseRate changes the "
+                               "rate of a running goal")
+        with self._lock:
+            self._send(("rate", goal._link_key, float(rate)))
+        return goal
+
+    def measured_age(self) -> float:
+        s = self._stamp
+        return math.inf if s is None else time.monotonic() - s
+
+    def summary(self) -> str:
+        """The child's loop summary sent with the latest outcome."""
+        return f"control process {self.pid}: {self._summary}"
+
+    def shutdown(self, timeout: float = 3.0) -> None:
+        with self._lock:
+            self._stopping = True
+            self._send(("stop",))
+        try:
+            self.proc.wait(timeout)
+        except (subprocess.TimeoutExpired, KeyboardInterrupt):  # (a second SIGINT while waiting)
+            self.proc.kill()
+            self.proc.wait()
+        self._reader.join(timeout)
+
+
+# ======================================================================================== child
+class _LinkedGoal(ExecutionGoal):
+    """A goal in the child: wakes the reporter when it finishes."""
+
+    def __init__(self, plan, key: int, wake: threading.Event):
+        super().__init__(plan, str(key))
+        self.key = key
+        self._wake = wake
+
+    def _finish(self, outcome) -> None:
+        super()._finish(outcome)
+        self._wake.set()
+
+
+def _die_with_parent(parent_pid: int) -> bool:
+    """PR_SET_PDEATHSIG = SIGKILL; False if the parent is already gone."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+    return os.getppid() == parent_pid
+
+
+def _child(fd: int, parent_pid: int) -> int:
+    if not _die_with_parent(parent_pid):
+        return 1
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server stops this process through the link
+    conn = Connection(fd)
+    kind, init = conn.recv()
+    assert kind == "init", kind
+
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+
+    from deepprompt_ros.ros.loop_io import LoopIO
+    from deepprompt_ros.ros.stream_loop import (ExecutionController, StreamLoop, freeze_startup_objects,
+                                                set_switch_interval)
+
+    cfg = init["cfg"]
+    set_switch_interval(cfg.gil_switch_interval)
+    rclpy.init(args=[], signal_handler_options=SignalHandlerOptions.NO)
+    node = rclpy.create_node(init["node_name"], namespace=init["namespace"], start_parameter_services=False)
+    log = node.get_logger()
+    io = LoopIO(node, init["names"], init["limits"], cfg, init["command_topic"], init["trajectory_topic"],
+                init["joint_states_topic"])
+    loop = StreamLoop(ExecutionController(init["limits"], init["dt"], cfg), cfg, io.publish_command,
+                      io.publish_trajectory, on_error=lambda m: log.error(m, throttle_duration_sec=1.0),
+                      poll_measured=io.poll_joint_state)
+    io.on_measured = loop.update_measured
+    goals: dict[int, _LinkedGoal] = {}
+    wake, stop = threading.Event(), threading.Event()
+    send_lock = threading.Lock()
+
+    def send(msg) -> None:
+        with send_lock:
+            conn.send(msg)
+
+    def receive() -> None:
+        name_os_thread("link_reader")
+        try:
+            while True:
+                msg = conn.recv()
+                if msg[0] == "start":
+                    goal = goals[msg[1]] = _LinkedGoal(msg[2], msg[1], wake)
+                    loop.execute(goal)
+                elif msg[0] == "cancel":
+                    if (goal := goals.get(msg[1])) is not None:
+                        loop.cancel(goal)
+                elif msg[0] == "rate":
+                    if (goal := goals.get(msg[1])) is not None:
+                        loop._commands.append(("rate", goal, msg[2]))
+                elif msg[0] == "stop":
+                    break
+        except (EOFError, OSError):
+            pass
+        stop.set()
+        wake.set()
+
+    loop.start(threaded=True)
+    loop.started.wait(5.0)
+    threading.Thread(target=receive, name="link_reader", daemon=True).start()
+    freeze_startup_objects()
+    try:
+        send(("ready", os.getpid(), loop.priority_error))
+        while not stop.is_set():
+            wake.wait(STATUS_PERIOD)
+            wake.clear()
+            for key, goal in list(goals.items()):
+                if goal.done.is_set():
+                    del goals[key]
+                    send(("done", key, goal.outcome, loop.summary()))
+            a = loop.active_goal
+            m = loop.measured
+            send(("status", None if m is None else m.stamp, None if a is None else a.key,
+                  None if a is None else a.stage, None if a is None else a.progress))
+    except (OSError, EOFError):
+        pass
+    finally:
+        loop.shutdown()
+        io.destroy()
+        node.destroy_node()
+        rclpy.try_shutdown()
+        conn.close()
+    return 0
+
+
+def _exit_now(code: int) -> None:
+    """Exit without interpreter finalization (nothing is left to clean up: the node is destroyed,
+    the link closed); tearing down the extension objects took long and printed nanobind's leak
+    report."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
+def main(argv=None) -> int:
+    """``python -m deepprompt_ros.ros.control_process <fd> <parent pid>`` (started by ControlProcess)."""
+    argv = sys.argv[1:] if argv is None else argv
+    return _child(int(argv[0]), int(argv[1]))
+
+
+if __name__ == "__main__":
+    _exit_now(main())
