@@ -396,19 +396,26 @@ class DeepProMP:
             out += self._linear_part(z, x)
         return out
 
-    def _phi(self, x) -> np.ndarray:
-        """Φ(x) of the decoder's linear part, (T, n_b); cached per phase grid like the phase layer."""
+    @staticmethod
+    def _per_grid(cache: dict, x, compute: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+        """compute(x) cached per phase grid (a server decodes the same preview / control grid again
+        and again); at most 16 grids, the result read-only: do not modify."""
         x = np.ascontiguousarray(x, dtype=np.float64)
         key = x.tobytes()
-        phi = self._phi_cache.get(key)
-        if phi is None:
-            c = self.cfg
-            phi = phase_basis(x, c.decoder_basis, c.basis_width, c.phase_type == "rhythmic")
-            phi.flags.writeable = False
-            if len(self._phi_cache) >= 16:
-                self._phi_cache.clear()
-            self._phi_cache[key] = phi
-        return phi
+        out = cache.get(key)
+        if out is None:
+            out = compute(x)
+            out.flags.writeable = False
+            if len(cache) >= 16:
+                cache.clear()  # atomic (several server threads decode)
+            cache[key] = out
+        return out
+
+    def _phi(self, x) -> np.ndarray:
+        """Φ(x) of the decoder's linear part, (T, n_b); cached per phase grid like the phase layer."""
+        c = self.cfg
+        return self._per_grid(self._phi_cache, x, lambda x: phase_basis(x, c.decoder_basis, c.basis_width,
+                                                                         c.phase_type == "rhythmic"))
 
     def _linear_part(self, z: np.ndarray, x: np.ndarray) -> np.ndarray:
         """Φ(x)(b + A z) in joint units (without the mean, which ``_b3`` carries): z (k,) → (T, d),
@@ -429,16 +436,7 @@ class DeepProMP:
     def _layer1_phase(self, x) -> np.ndarray:
         """W1x φ(x) + b1 of the decoder's first layer, (T, h); cached per phase grid (a server
         decodes the same preview / control grid again and again). Read-only: do not modify."""
-        x = np.ascontiguousarray(x, dtype=np.float64)
-        key = x.tobytes()
-        pre = self._pre_x_cache.get(key)
-        if pre is None:
-            pre = self._phase_feats(x) @ self._dec_W1x.T + self._dec.b[0]
-            pre.flags.writeable = False
-            if len(self._pre_x_cache) >= 16:
-                self._pre_x_cache.clear()  # atomic (several server threads decode)
-            self._pre_x_cache[key] = pre
-        return pre
+        return self._per_grid(self._pre_x_cache, x, lambda x: self._phase_feats(x) @ self._dec_W1x.T + self._dec.b[0])
 
     def decode_per_phase(self, z_x: np.ndarray, x: np.ndarray) -> np.ndarray:
         """Decode a latent that varies with phase (blending): z_x (T, k), x (T,) → (T, d)."""
