@@ -27,6 +27,7 @@ import math
 import os
 import pathlib
 import tempfile
+import time
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
@@ -181,11 +182,59 @@ def load_task(name: str, scale: Scale, sizes: tuple[int, int, int] | None = None
     return TaskData(name, tr, va, te)
 
 
+DATA_CACHE_ENV = ("DEEPPROMPT_DATA_CACHE", "DEEPPROMPT_EXPERIMENTS_DATA")  # the second: its former name
+_DATA_CACHE: list[pathlib.Path] = []  # set by set_data_cache_dir (experiments/run.py: <out>/data_cache)
+
+
 def data_cache_dir() -> pathlib.Path:
-    """Where generated PyBullet task splits are kept between runs (``$DEEPPROMPT_EXPERIMENTS_DATA`` or
-    ``<tmp>/deepprompt_experiments_data``)."""
-    env = os.environ.get("DEEPPROMPT_EXPERIMENTS_DATA")
-    return pathlib.Path(env) if env else pathlib.Path(tempfile.gettempdir()) / "deepprompt_experiments_data"
+    """Where generated PyBullet task splits are kept between runs: the folder given to
+    :func:`set_data_cache_dir` (``experiments/run.py`` gives ``--data-cache``, ``$DEEPPROMPT_DATA_CACHE``
+    or ``<out>/data_cache``), else ``$DEEPPROMPT_DATA_CACHE`` (or its former name
+    ``$DEEPPROMPT_EXPERIMENTS_DATA``), else ``<tmp>/deepprompt_experiments_data``."""
+    if _DATA_CACHE:
+        return _DATA_CACHE[-1]
+    env = env_data_cache_dir()
+    return env if env else pathlib.Path(tempfile.gettempdir()) / "deepprompt_experiments_data"
+
+
+def env_data_cache_dir() -> pathlib.Path | None:
+    """The data cache folder named by the environment (:data:`DATA_CACHE_ENV`), or None."""
+    env = next((os.environ[k] for k in DATA_CACHE_ENV if os.environ.get(k)), None)
+    return pathlib.Path(env) if env else None
+
+
+def set_data_cache_dir(folder: str | pathlib.Path | None) -> None:
+    """Use ``folder`` as :func:`data_cache_dir` from now on (None: back to the environment / tmp default)."""
+    _DATA_CACHE.clear()
+    if folder is not None:
+        _DATA_CACHE.append(pathlib.Path(folder))
+
+
+def file_digest(paths: Sequence[pathlib.Path]) -> str:
+    """sha1 (10 hex digits) of the files' names (relative to the project root when inside it) and bytes."""
+    h = hashlib.sha1()
+    for f in sorted(pathlib.Path(p).resolve() for p in paths):
+        name = f.relative_to(ROOT) if f.is_relative_to(ROOT) else f.name
+        h.update(f"{name}\0".encode())
+        h.update(f.read_bytes())
+        h.update(b"\0")
+    return h.hexdigest()[:10]
+
+
+_SOURCE_DIGESTS: dict[tuple[str, ...], str] = {}
+
+
+def source_digest(patterns: Sequence[str]) -> str:
+    """:func:`file_digest` of the files matching the glob ``patterns`` (relative to the project root),
+    taken once per process, like :func:`_tasks_module`'s: the code that computes a result is the code
+    in memory, even if the files change later."""
+    patterns = tuple(patterns)
+    if patterns not in _SOURCE_DIGESTS:
+        files = sorted({f for pat in patterns for f in ROOT.glob(pat) if f.is_file()})
+        if not files:
+            raise FileNotFoundError(f"no source files match {list(patterns)} under {ROOT}")
+        _SOURCE_DIGESTS[patterns] = file_digest(files)
+    return _SOURCE_DIGESTS[patterns]
 
 
 _TASKS: list = []
@@ -204,18 +253,49 @@ def _tasks_module():
 def cached_task_split(name: str, split: str, n: int | None, quick: bool, seed: int = 0) -> DemoDataset:
     """``core.tasks.make_task(name, split, n, quick, seed)``, generated once and then read from
     :func:`data_cache_dir` (the key includes a hash of ``core/tasks.py``, so a changed generator is
-    never read from a stale cache)."""
+    never read from a stale cache). Each cache entry keeps ``cache_info.json`` (the dataset's source
+    and the generation time, s), so a read entry has the source of the generated one."""
     from deepprompt_ros.core.dataset import load_dataset
 
     tasks, digest = _tasks_module()
     folder = data_cache_dir() / f"{name}_{split}_n{n}_q{int(quick)}_s{seed}_{digest}"
-    if folder.is_dir():
-        return load_dataset(folder)
-    ds = tasks.make_task(name, split=split, n=n, quick=quick, seed=seed)
-    part = folder.with_name(folder.name + f".part{os.getpid()}")
-    ds.save(part)
-    part.rename(folder)  # a crash never leaves a half-written cache entry under the final name
-    return DemoDataset(load_dataset(folder).demos, ds.source)
+    if not folder.is_dir():
+        t0 = time.perf_counter()
+        ds = tasks.make_task(name, split=split, n=n, quick=quick, seed=seed)
+        gen_s = time.perf_counter() - t0
+        part = folder.with_name(folder.name + f".part{os.getpid()}")
+        ds.save(part)
+        (part / "cache_info.json").write_text(json.dumps({"source": ds.source, "generate_s": gen_s}) + "\n")
+        part.rename(folder)  # a crash never leaves a half-written cache entry under the final name
+    info = folder / "cache_info.json"
+    source = json.loads(info.read_text())["source"] if info.is_file() else None
+    ds = load_dataset(folder)
+    return DemoDataset(ds.demos, source or ds.source)
+
+
+def dataset_digest(datasets: Sequence[DemoDataset]) -> str:
+    """sha1 (12 hex digits) of the contents of ``datasets`` in order: every demonstration's name,
+    time stamps, joint positions, joint names, phase type, contexts and images (not the ``source``
+    label, which names a cache folder when the data were read from one)."""
+    h = hashlib.sha1()
+
+    def arr(a) -> None:
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+
+    for ds in datasets:
+        h.update(f"dataset {len(ds)}\0".encode())
+        for d in ds.demos:
+            h.update(f"{d.name}\0{d.phase_type}\0{'|'.join(d.joint_names)}\0".encode())
+            arr(d.t)
+            arr(d.q)
+            for k in sorted(d.contexts):
+                h.update(f"ctx {k}\0".encode())
+                arr(d.contexts[k])
+            if d.images is not None:
+                arr(d.images)
+    return h.hexdigest()[:12]
 
 
 def base_train_config(path: str | pathlib.Path | None = None) -> TrainConfig:

@@ -16,13 +16,17 @@ not in the aggregate: it is the deployment case the models were trained for.
 
 ProMP is deterministic: its "seeds" are bootstrap resamples of the training set (the paper
 bootstraps ProMP). ProMP takes no images, so its aggregate averages fewer conditionings.
+
+Each (task, model, seed) is a unit (:func:`fit_unit`, :mod:`experiments.units`): stored when it is
+done, read back by the next run with the same key (:func:`task_units`), computed in worker processes
+with ``jobs`` > 1.
 """
 from __future__ import annotations
 
 import dataclasses
 import pathlib
 import time
-from typing import Callable, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -32,6 +36,7 @@ from deepprompt_ros.core.train import TrainConfig
 
 from . import common
 from .common import Scale, TaskData
+from .units import Unit, UnitCache, UnitReport, run_units
 
 CONDITIONING_LABELS = {"via_point": "Via Point", "image": "Image", "low_dim": "Low Dim", "image+low": "Image+Low",
                        "aggregate": "Aggregate", "via_5": "5 via-points"}
@@ -56,33 +61,88 @@ def evaluate(model, test: DemoDataset, n_points: int) -> dict[str, float]:
     return out
 
 
-def run_task(task: TaskData, base: TrainConfig, scale: Scale, kinds: Sequence[str] | None = None,
-             log: Callable[[str], None] = print) -> dict:
-    """Train and evaluate every model on one task.
+# The files whose code determines a unit's result (their digest is part of every unit's key).
+SOURCES = ("experiments/reconstruction.py", "experiments/common.py", "deepprompt_ros/core/*.py")
 
-    Returns
-    -------
-    dict: ``runs`` {kind: [ {seed, mse: {cond: value}, fit_s, best_val} ]}, ``stats`` {kind: {cond:
-    {mean, se, n}}}, ``conditionings`` (those any model has), dataset sizes.
-    """
-    runs: dict[str, list] = {}
+
+def fit_unit(tasks: Mapping[str, TaskData], task: str, kind: str, seed: int, cfg: TrainConfig) -> dict:
+    """One unit of the experiment: model ``kind`` trained with ``cfg`` (seed ``seed``; ProMP on bootstrap
+    resample ``seed`` of the training set) on ``tasks[task]`` and evaluated on its test demos:
+    ``{seed, mse: {cond: value}, fit_s, eval_s}``."""
+    data = tasks[task]
+    cls = MODEL_CLASSES_BY_KIND[kind]
+    t0 = time.perf_counter()
+    if cls is ProMPModel:
+        model = cls().fit(bootstrap(data.train, seed), cfg, data.val)
+    else:
+        model = cls().fit(data.train, cfg, data.val)
+    fit_s = time.perf_counter() - t0
+    mse = evaluate(model, data.test, cfg.n_points)
+    return {"seed": seed, "mse": mse, "fit_s": fit_s, "eval_s": time.perf_counter() - t0 - fit_s}
+
+
+MODEL_CLASSES_BY_KIND = {cls.kind: cls for cls in MODEL_CLASSES}
+
+
+def task_units(task: TaskData, base: TrainConfig, scale: Scale, kinds: Sequence[str] | None = None) -> list[Unit]:
+    """The units of one task, in table order (model classes × seeds); each unit's ``parts`` hold what
+    determines its result: the training config as :func:`common.train_config` builds it, the scale's
+    steps, the data (sizes and :func:`common.dataset_digest`), the digest of :data:`SOURCES` and the
+    torch / numpy versions."""
+    import torch
+
+    data = {"sizes": [len(task.train), len(task.val), len(task.test)],
+            "digest": common.dataset_digest([task.train, task.val, task.test])}
+    fixed = {"experiment": "reconstruction", "task": task.name, "data": data,
+             "scale": {"recon_steps": scale.recon_steps, "recon_val_every": scale.recon_val_every},
+             "n_via_extra": N_VIA_EXTRA, "sources": common.source_digest(SOURCES),
+             "versions": {"torch": torch.__version__, "numpy": np.__version__}}
+    units = []
     for cls in MODEL_CLASSES:
         if kinds and cls.kind not in kinds:
             continue
-        runs[cls.kind] = []
         for seed in range(scale.recon_seeds):
             cfg = common.train_config(base, scale.recon_steps, scale.recon_val_every, seed, task.name)
-            t0 = time.perf_counter()
-            if cls is ProMPModel:
-                model = cls().fit(bootstrap(task.train, seed), cfg, task.val)
-            else:
-                model = cls().fit(task.train, cfg, task.val)
-            fit_s = time.perf_counter() - t0
-            mse = evaluate(model, task.test, cfg.n_points)
-            runs[cls.kind].append({"seed": seed, "mse": mse, "fit_s": fit_s,
-                                   "eval_s": time.perf_counter() - t0 - fit_s})
-            log(f"  {task.name:16s} {cls.kind:15s} seed {seed}  fit {fit_s:6.1f} s  "
-                + "  ".join(f"{c} {v:.2e}" for c, v in mse.items()))
+            parts = {**fixed, "kind": cls.kind, "seed": seed, "train_config": dataclasses.asdict(cfg)}
+            cost = 0.01 if cls is ProMPModel else 1.0 + (task.train.image_shape is not None)
+            units.append(Unit(f"{task.name}__{cls.kind}__s{seed}", parts, (task.name, cls.kind, seed, cfg), cost))
+    return units
+
+
+def run_tasks(tasks: Sequence[TaskData], base: TrainConfig, scale: Scale, kinds: Sequence[str] | None = None,
+              log: Callable[[str], None] = print, cache: UnitCache | None = None,
+              jobs: int = 1) -> tuple[dict[str, dict], UnitReport]:
+    """Train and evaluate every model on every task, unit by unit (:func:`fit_unit`): units found in
+    ``cache`` are read, the others computed (``jobs`` worker processes) and stored. Returns ({task name:
+    :func:`task_result`}, what was reused / computed)."""
+    units = [u for t in tasks for u in task_units(t, base, scale, kinds)]
+
+    def show(u: Unit, r: dict, reused: bool, wall_s: float) -> None:
+        task, kind, seed = u.args[:3]
+        log(f"  {task:16s} {kind:15s} seed {seed}  fit {r['fit_s']:6.1f} s  "
+            + "  ".join(f"{c} {v:.2e}" for c, v in r["mse"].items()) + ("  (reused)" if reused else ""))
+
+    results, report = run_units(units, fit_unit, {t.name: t for t in tasks}, cache, jobs, SOURCES, show, log)
+    runs: dict[str, dict[str, list]] = {t.name: {} for t in tasks}
+    for u, r in zip(units, results):
+        runs[u.args[0]].setdefault(u.args[1], []).append(r)
+    return {t.name: task_result(t, runs[t.name]) for t in tasks}, report
+
+
+def run_task(task: TaskData, base: TrainConfig, scale: Scale, kinds: Sequence[str] | None = None,
+             log: Callable[[str], None] = print, cache: UnitCache | None = None, jobs: int = 1) -> dict:
+    """Train and evaluate every model on one task (:func:`run_tasks`).
+
+    Returns
+    -------
+    dict: ``runs`` {kind: [ {seed, mse: {cond: value}, fit_s, eval_s} ]}, ``stats`` {kind: {cond:
+    {mean, se, n}}}, ``conditionings`` (those any model has), dataset sizes.
+    """
+    return run_tasks([task], base, scale, kinds, log, cache, jobs)[0][task.name]
+
+
+def task_result(task: TaskData, runs: dict[str, list]) -> dict:
+    """The table entry of one task from its units' results ``runs`` {kind: [unit result per seed]}."""
     conds = [c for c in PAPER_CONDITIONINGS + ("via_5",) if any(c in r["mse"] for rs in runs.values() for r in rs)]
     stats = {k: {c: dict(zip(("mean", "se"), common.mean_se([r["mse"].get(c, np.nan) for r in rs])),
                          n=sum(c in r["mse"] for r in rs)) for c in conds} for k, rs in runs.items()}
@@ -153,20 +213,24 @@ def markdown(results: dict[str, dict], meta: dict) -> str:
 
 
 def run(scale: Scale, out: pathlib.Path, tasks: Sequence[str] | None = None, base: TrainConfig | None = None,
-        log: Callable[[str], None] = print) -> dict:
+        log: Callable[[str], None] = print, cache: UnitCache | None = None, jobs: int = 1) -> dict:
     """Experiment 1 on ``tasks`` (default :func:`common.default_tasks`); writes
-    ``reconstruction.{json,md}`` and ``reconstruction_radar_<task>.png`` under ``out``."""
+    ``reconstruction.{json,md}`` and ``reconstruction_radar_<task>.png`` under ``out``. The task data
+    are loaded first (PyBullet tasks: generated or read from :func:`common.data_cache_dir`), then the
+    units run (:func:`run_tasks`; ``cache``: finished units, e.g. ``UnitCache(out / "units" /
+    "reconstruction")``). The returned dict's ``units`` is the :class:`UnitReport` (not in the JSON)."""
     base = base or common.base_train_config()
     tasks = tuple(tasks) if tasks else common.default_tasks(scale)
-    results = {}
+    datas = []
     for name in tasks:
         t0 = time.perf_counter()
         data = common.load_task(name, scale)
         log(f"  task {name}: {len(data.train)} train / {len(data.val)} val / {len(data.test)} test "
             f"({time.perf_counter() - t0:.1f} s to load)")
-        results[name] = run_task(data, base, scale, log=log)
+        datas.append(data)
+    results, report = run_tasks(datas, base, scale, log=log, cache=cache, jobs=jobs)
     meta = {"scale": scale.name, "seeds": scale.recon_seeds, "steps": scale.recon_steps,
             "base_config": dataclasses.asdict(base), "tasks": list(tasks)}
     files = plot(results, out)
     files += common.write_outputs(out, "reconstruction", {"meta": meta, "tasks": results}, markdown(results, meta))
-    return {"meta": meta, "tasks": results, "files": [str(f) for f in files]}
+    return {"meta": meta, "tasks": results, "files": [str(f) for f in files], "units": report.to_json()}

@@ -18,6 +18,7 @@ Units: phases in [0, 1], joints in rad; errors in rad.
 """
 from __future__ import annotations
 
+import hashlib
 import pathlib
 import time
 from typing import Callable
@@ -28,6 +29,7 @@ from deepprompt_ros.core.primitive import DeepProMP
 
 from . import common
 from .common import Scale
+from .units import Unit, UnitCache, run_units
 
 INITS = ("posterior", "prior")
 TOL = 1e-6
@@ -62,28 +64,71 @@ def error_curve(prim: DeepProMP, init, xv: np.ndarray, yv: np.ndarray, budgets) 
                   "reason": res.reason, "time_s": t_full}
 
 
+# The files whose code determines a unit's result (their digest is part of every unit's key).
+SOURCES = ("experiments/refinement.py", "experiments/common.py", "deepprompt_ros/core/*.py")
+CHECKPOINT = common.MODELS / "gen3_lite_reach.safetensors"
+
+
+def _demos_digest(demos: list[np.ndarray]) -> str:
+    h = hashlib.sha1()
+    for y in demos:
+        y = np.ascontiguousarray(y, dtype=np.float64)
+        h.update(f"{y.shape}".encode())
+        h.update(y.tobytes())
+    return h.hexdigest()[:12]
+
+
+def curve_unit(shared: dict, n: int, init_name: str, budgets: tuple[int, ...]) -> dict:
+    """One unit: the error curves (``curves``: one per set, :func:`error_curve`) and facts of ``n``
+    via-points from every demo of ``shared`` (``prim`` and ``demos``, or ``scale`` to load them with
+    :func:`default_model_and_data` — once per process), refinement started at ``init_name``."""
+    if "prim" not in shared:
+        shared["prim"], shared["demos"] = default_model_and_data(shared["scale"])
+    prim, demos = shared["prim"], shared["demos"]
+    x = np.linspace(0.0, 1.0, demos[0].shape[0])
+    curves, facts = [], []
+    for i, y in enumerate(demos):
+        sel = np.sort(np.random.default_rng([n, i]).choice(x.size, n, replace=False))
+        xv, yv = x[sel], y[sel]
+        init = prim.condition(xv, yv) if init_name == "posterior" else prim.prior()
+        errs, f = error_curve(prim, init, xv, yv, budgets)
+        curves.append(errs)
+        facts.append(f)
+    return {"curves": curves, "facts": facts}
+
+
 def run(scale: Scale, out: pathlib.Path, prim: DeepProMP | None = None, demos: list[np.ndarray] | None = None,
-        log: Callable[[str], None] = print) -> dict:
-    """Experiment 2; writes ``refinement.{png,json,md}`` under ``out``."""
-    if prim is None or demos is None:
+        log: Callable[[str], None] = print, cache: UnitCache | None = None, jobs: int = 1) -> dict:
+    """Experiment 2; writes ``refinement.{png,json,md}`` under ``out``. One unit per (N, init)
+    (:func:`curve_unit`); with the default model and data (``prim``, ``demos`` None) finished units are
+    read from ``cache`` and the others computed (``jobs`` worker processes); a given ``prim`` / ``demos``
+    is computed here, uncached. The returned dict's ``units`` is the :class:`UnitReport` (not in the JSON)."""
+    import torch
+
+    default = prim is None or demos is None
+    if default:
         prim, demos = default_model_and_data(scale)
     x = np.linspace(0.0, 1.0, demos[0].shape[0])
     budgets = tuple(sorted(scale.refine_budgets))
-    curves, facts = {}, {}
-    for n in scale.refine_n_via:
-        for init_name in INITS:
-            key = f"N={n} {init_name}"
-            curves[key], facts[key] = [], []
-            for i, y in enumerate(demos):
-                sel = np.sort(np.random.default_rng([n, i]).choice(x.size, n, replace=False))
-                xv, yv = x[sel], y[sel]
-                init = prim.condition(xv, yv) if init_name == "posterior" else prim.prior()
-                errs, f = error_curve(prim, init, xv, yv, budgets)
-                curves[key].append(errs)
-                facts[key].append(f)
-            c = np.array(curves[key])
-            log(f"  {key:16s} max error (mean over {len(demos)} sets) at budgets {(0,) + budgets}: "
-                + " ".join(f"{v:.1e}" for v in c.mean(0)))
+    keys = [(n, init_name) for n in scale.refine_n_via for init_name in INITS]
+    fixed = {"experiment": "refinement", "checkpoint": common.file_digest([CHECKPOINT]),
+             "data": {"n_sets": len(demos), "digest": _demos_digest(demos)}, "budgets": list(budgets), "tol": TOL,
+             "sources": common.source_digest(SOURCES), "versions": {"torch": torch.__version__,
+                                                                   "numpy": np.__version__}}
+    units = [Unit(f"N{n}__{init_name}", {**fixed, "n_via": n, "init": init_name}, (n, init_name, budgets),
+                  cost=float(n)) for n, init_name in keys]
+
+    def show(u: Unit, r: dict, reused: bool, wall_s: float) -> None:
+        key = f"N={u.args[0]} {u.args[1]}"
+        log(f"  {key:16s} max error (mean over {len(r['curves'])} sets) at budgets {(0,) + budgets}: "
+            + " ".join(f"{v:.1e}" for v in np.mean(r["curves"], 0)) + ("  (reused)" if reused else ""))
+
+    if default:
+        results, report = run_units(units, curve_unit, {"scale": scale}, cache, jobs, SOURCES, show, log)
+    else:
+        results, report = run_units(units, curve_unit, {"prim": prim, "demos": demos}, None, 1, (), show, log)
+    curves = {f"N={n} {i}": [np.asarray(c, dtype=np.float64) for c in r["curves"]] for (n, i), r in zip(keys, results)}
+    facts = {f"N={n} {i}": r["facts"] for (n, i), r in zip(keys, results)}
     summary = {}
     for key, c in curves.items():
         c = np.array(c)
@@ -109,7 +154,7 @@ def run(scale: Scale, out: pathlib.Path, prim: DeepProMP | None = None, demos: l
             else "one refine call per budget"}
     files = [plot(summary, scale.refine_n_via, out / "refinement.png")]
     files += common.write_outputs(out, "refinement", {"meta": meta, "curves": summary}, markdown(summary, meta))
-    return {"meta": meta, "curves": summary, "files": [str(f) for f in files]}
+    return {"meta": meta, "curves": summary, "files": [str(f) for f in files], "units": report.to_json()}
 
 
 def plot(summary: dict, n_vias, path: pathlib.Path) -> pathlib.Path:

@@ -44,6 +44,7 @@ from deepprompt_ros.core.train import TrainConfig, cv_basis_hyperparameters
 
 from . import common
 from .common import Scale
+from .units import Unit, UnitCache, UnitReport, run_units
 
 METHODS = ("promp", "deepprompt", "deepprompt_refined", "deepprompt_map", "deepprompt_map_linear", "promp_start",
            "deepprompt_start")
@@ -77,6 +78,7 @@ class SmallDataResult:
     cv: dict = dataclasses.field(default_factory=dict)  # cross-validation on the training demos (cv_grid), or {}
     residual_used: list = dataclasses.field(default_factory=list)  # residual scale of the deepprompt_map row, per seed
     residual_val: list = dataclasses.field(default_factory=list)  # validation MAP MSE [trained residual, off], per seed
+    units: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)  # UnitReport; not in to_json
 
     def stats(self) -> dict:
         return {m: dict(zip(("mean", "se"), common.mean_se(v))) for m, v in self.mse.items()}
@@ -90,7 +92,9 @@ class SmallDataResult:
                 "deepprompt_start/promp_start": s["deepprompt_start"]["mean"] / s["promp_start"]["mean"]}
 
     def to_json(self) -> dict:
-        return {**dataclasses.asdict(self), "stats": self.stats(), "ratios": self.ratios()}
+        d = dataclasses.asdict(self)
+        del d["units"]
+        return {**d, "stats": self.stats(), "ratios": self.ratios()}
 
     def markdown(self) -> str:
         s = self.stats()
@@ -186,7 +190,8 @@ def small_data(train_config: TrainConfig, data: tuple[DemoDataset, DemoDataset] 
                n_test: int = 50, n_via: int = 5, seeds: Sequence[int] = (0,), task: str = "wam_reach",
                log: Callable[[str], None] = print, map_prior: str = "standard",
                map_noise_factors: Sequence[float] = (0.25, 0.5, 1.0, 2.0), cv_grid: dict | None = None,
-               residual_select: bool = False, val_draws: int = 8) -> SmallDataResult:
+               residual_select: bool = False, val_draws: int = 8, cache: UnitCache | None = None,
+               jobs: int = 1) -> SmallDataResult:
     """Train DeepProMP with ``train_config`` (its seed replaced by each of ``seeds``) and ProMP on the
     same demonstrations; measure held-out MSE with ``n_via`` via-points, with and without refinement.
 
@@ -204,64 +209,137 @@ def small_data(train_config: TrainConfig, data: tuple[DemoDataset, DemoDataset] 
     residual_select : (residual decoders) per seed, the ``deepprompt_map`` row uses the trained MLP residual
         or none (scale 0), whichever has the lower MAP MSE on the seed's validation demos (``val_draws``
         via-point sets per demo). Row ``deepprompt_map_linear`` is always the residual-off MAP on the test demos.
+    cache, jobs : the cross-validation and each seed are units (:func:`cv_unit`, :func:`seed_unit`): those
+        in ``cache`` are read, the others computed (``jobs`` worker processes for the seeds) and stored;
+        ``units`` of the result is the :class:`UnitReport`
     """
     train_ds, test_ds = data if data is not None else default_data(n_train, n_test, task)
     n_points = train_config.n_points
     mse = {m: [] for m in METHODS}
     check, reach, fit_s, factors, noises, res_used, res_val = [], [], [], [], [], [], []
     cv = {}
+    report = UnitReport()
     if cv_grid is not None:
         if not train_config.decoder_basis:
             raise ValueError("cv_grid needs a decoder with a linear basis (decoder_basis > 0)")
-        t0 = time.perf_counter()
-        cv = cv_basis_hyperparameters(train_ds, n_points, train_config.decoder_basis, train_config.basis_width,
-                                      n_via=n_via, **cv_grid)
-        cv["wall_time_s"] = time.perf_counter() - t0
+        args = (n_points, train_config.decoder_basis, train_config.basis_width, n_via, dict(cv_grid))
+        unit = Unit("cv", {**unit_context(train_ds, test_ds), "cv": args}, args)
+        (cv,), report = run_units([unit], cv_unit, {"train": train_ds}, cache, 1, SOURCES, log=lambda s: None)
         train_config = dataclasses.replace(train_config, latent_dim=cv["latent_dim"], basis_cov_reg=cv["basis_cov_reg"])
         log(f"  cross-validation ({cv['folds']} folds, {cv['wall_time_s']:.1f} s): latent {cv['latent_dim']}, "
-            f"basis_cov_reg {cv['basis_cov_reg']}, MAP noise {cv['noise_std']} rad (CV MSE {cv['cv_mse']:.3e})")
+            f"basis_cov_reg {cv['basis_cov_reg']}, MAP noise {cv['noise_std']} rad (CV MSE {cv['cv_mse']:.3e})"
+            + ("  (reused)" if report.reused else ""))
     promp = ProMPModel().fit(train_ds, train_config)
     p_via = reconstruction_mse(promp, test_ds, "via_point", n_via=n_via, n_points=n_points)
     p_start = _start_only(promp, test_ds, n_points)
-    for seed in seeds:
-        cfg = dataclasses.replace(train_config, seed=int(seed))
-        t0 = time.perf_counter()
-        model = DeepProMPModel().fit(train_ds, cfg)
-        fit_s.append(time.perf_counter() - t0)
-        d_via = reconstruction_mse(model, test_ds, "via_point", n_via=n_via, n_points=n_points)
-        d_ref, d_check, ok = refined_mse(model, test_ds, n_via, n_points)
-        _, val_ds = train_ds.split(cfg.n_val or max(1, len(train_ds) // 10), seed=cfg.seed)  # DeepProMPModel.fit's split
-        if cv:
-            f, noise = float("nan"), cv["noise_std"]
-        else:
-            f, noise = min(map_noise_factors, key=lambda f: map_mse(model, val_ds, n_via, f, map_prior, n_points, seed=12345)), None
-        factors.append(float(f))
-        chosen = model
-        if cfg.decoder_basis:
-            linear = DeepProMPModel()
-            linear._set(model.primitive.with_residual_scale(0.0))
-            mse["deepprompt_map_linear"].append(map_mse(linear, test_ds, n_via, f, map_prior, n_points, noise_std=noise))
-            if residual_select:
-                val = [float(np.mean([map_mse(m, val_ds, n_via, f, map_prior, n_points, seed=12345 + r, noise_std=noise)
-                                      for r in range(val_draws)])) for m in (model, linear)]
-                res_val.append(val)
-                chosen = linear if val[1] < val[0] else model
-            res_used.append(float(chosen.primitive.cfg.residual_scale))
-        d_map = map_mse(chosen, test_ds, n_via, f, map_prior, n_points, noise_std=noise)
-        prim = model.primitive
-        noises.append(float(noise) if noise is not None else float(
-            f * prim.cfg.sigma_y * np.sqrt(np.mean(np.asarray(prim.norm.y_std, dtype=np.float64) ** 2))))
-        for m, v in zip(("promp", "deepprompt", "deepprompt_refined", "deepprompt_map", "promp_start", "deepprompt_start"),
-                        (p_via, d_via, d_ref, d_map, p_start, _start_only(model, test_ds, n_points))):
-            mse[m].append(v)
-        check.append(d_check)
-        reach.append(ok)
-        log(f"  seed {seed}: ProMP {p_via:.2e}  DeepProMP {d_via:.2e}  refined {d_ref:.2e}  MAP {d_map:.2e} (noise {noises[-1]:.2e} rad)  "
-            f"start-only ProMP {p_start:.2e} DeepProMP {mse['deepprompt_start'][-1]:.2e}  (fit {fit_s[-1]:.1f} s)")
+    params = dict(n_via=n_via, map_prior=map_prior, map_noise_factors=tuple(map_noise_factors), cv=cv,
+                  residual_select=residual_select, val_draws=val_draws)
+    units = seed_units(train_ds, test_ds, train_config, seeds, params, n_points)
+
+    def show(u: Unit, r: dict, reused: bool, wall_s: float) -> None:
+        log(f"  seed {u.args[0]}: ProMP {p_via:.2e}  DeepProMP {r['deepprompt']:.2e}  refined {r['deepprompt_refined']:.2e}  "
+            f"MAP {r['deepprompt_map']:.2e} (noise {r['noise']:.2e} rad)  "
+            f"start-only ProMP {p_start:.2e} DeepProMP {r['deepprompt_start']:.2e}  (fit {r['fit_s']:.1f} s)"
+            + ("  (reused)" if reused else ""))
+
+    shared = {"train": train_ds, "test": test_ds}
+    results, seeds_report = run_units(units, seed_unit, shared, cache, jobs, SOURCES, show, log)
+    report = report.add(seeds_report)
+    for r in results:
+        fit_s.append(r["fit_s"])
+        factors.append(r["factor"])
+        noises.append(r["noise"])
+        check.append(r["check"])
+        reach.append(r["reach"])
+        if "residual_used" in r:
+            res_used.append(r["residual_used"])
+        if "residual_val" in r:
+            res_val.append(r["residual_val"])
+        mse["promp"].append(p_via)
+        mse["promp_start"].append(p_start)
+        for m in ("deepprompt", "deepprompt_refined", "deepprompt_map", "deepprompt_map_linear", "deepprompt_start"):
+            if m in r:
+                mse[m].append(r[m])
     if not mse["deepprompt_map_linear"]:
         del mse["deepprompt_map_linear"]
     return SmallDataResult(train_ds.source, len(train_ds.joint_names), len(train_ds), len(test_ds), n_via, tuple(int(s) for s in seeds), mse,
-                           check, reach, fit_s, dataclasses.asdict(train_config), factors, map_prior, noises, cv, res_used, res_val)
+                           check, reach, fit_s, dataclasses.asdict(train_config), factors, map_prior, noises, cv, res_used, res_val,
+                           units=report.to_json())
+
+
+# The files whose code determines a unit's result (their digest is part of every unit's key).
+SOURCES = ("experiments/small_data.py", "experiments/common.py", "deepprompt_ros/core/*.py")
+
+
+def unit_context(train_ds: DemoDataset, test_ds: DemoDataset) -> dict:
+    """The parts every unit of this experiment shares: the data digest, the digest of :data:`SOURCES`
+    and the torch / numpy versions."""
+    import torch
+
+    return {"experiment": "small_data",
+            "data": {"sizes": [len(train_ds), len(test_ds)], "digest": common.dataset_digest([train_ds, test_ds])},
+            "sources": common.source_digest(SOURCES), "versions": {"torch": torch.__version__, "numpy": np.__version__}}
+
+
+def cv_unit(shared: dict, n_points: int, decoder_basis: int, basis_width: float, n_via: int, cv_grid: dict) -> dict:
+    """The cross-validation unit: :func:`core.train.cv_basis_hyperparameters` on ``shared["train"]``, with
+    its wall time (``wall_time_s``)."""
+    t0 = time.perf_counter()
+    cv = cv_basis_hyperparameters(shared["train"], n_points, decoder_basis, basis_width, n_via=n_via, **cv_grid)
+    cv["wall_time_s"] = time.perf_counter() - t0
+    return cv
+
+
+def seed_units(train_ds: DemoDataset, test_ds: DemoDataset, train_config: TrainConfig, seeds: Sequence[int],
+               params: dict, n_points: int) -> list[Unit]:
+    """One unit per seed (:func:`seed_unit`); its parts: :func:`unit_context`, the training config with
+    the seed, ``params`` (the cross-validation result without its wall time) and ``n_points``."""
+    cv = {k: v for k, v in params["cv"].items() if k != "wall_time_s"}
+    fixed = {**unit_context(train_ds, test_ds), "params": {**params, "cv": cv}, "n_points": n_points}
+    tag = "residual" if train_config.decoder_basis else "plain"
+    units = []
+    for seed in seeds:
+        cfg = dataclasses.replace(train_config, seed=int(seed))
+        units.append(Unit(f"{tag}__s{int(seed)}", {**fixed, "train_config": dataclasses.asdict(cfg)},
+                          (int(seed), cfg, params, n_points)))
+    return units
+
+
+def seed_unit(shared: dict, seed: int, cfg: TrainConfig, params: dict, n_points: int) -> dict:
+    """One unit: DeepProMP trained with ``cfg`` (seed ``seed``) on ``shared["train"]`` and every
+    DeepProMP row of the table measured on ``shared["test"]`` (ProMP's rows do not depend on the seed)."""
+    train_ds, test_ds = shared["train"], shared["test"]
+    n_via, map_prior, map_noise_factors = params["n_via"], params["map_prior"], params["map_noise_factors"]
+    cv, residual_select, val_draws = params["cv"], params["residual_select"], params["val_draws"]
+    r = {}
+    t0 = time.perf_counter()
+    model = DeepProMPModel().fit(train_ds, cfg)
+    r["fit_s"] = time.perf_counter() - t0
+    r["deepprompt"] = reconstruction_mse(model, test_ds, "via_point", n_via=n_via, n_points=n_points)
+    r["deepprompt_refined"], r["check"], r["reach"] = refined_mse(model, test_ds, n_via, n_points)
+    _, val_ds = train_ds.split(cfg.n_val or max(1, len(train_ds) // 10), seed=cfg.seed)  # DeepProMPModel.fit's split
+    if cv:
+        f, noise = float("nan"), cv["noise_std"]
+    else:
+        f, noise = min(map_noise_factors, key=lambda f: map_mse(model, val_ds, n_via, f, map_prior, n_points, seed=12345)), None
+    r["factor"] = float(f)
+    chosen = model
+    if cfg.decoder_basis:
+        linear = DeepProMPModel()
+        linear._set(model.primitive.with_residual_scale(0.0))
+        r["deepprompt_map_linear"] = map_mse(linear, test_ds, n_via, f, map_prior, n_points, noise_std=noise)
+        if residual_select:
+            val = [float(np.mean([map_mse(m, val_ds, n_via, f, map_prior, n_points, seed=12345 + i, noise_std=noise)
+                                  for i in range(val_draws)])) for m in (model, linear)]
+            r["residual_val"] = val
+            chosen = linear if val[1] < val[0] else model
+        r["residual_used"] = float(chosen.primitive.cfg.residual_scale)
+    r["deepprompt_map"] = map_mse(chosen, test_ds, n_via, f, map_prior, n_points, noise_std=noise)
+    prim = model.primitive
+    r["noise"] = float(noise) if noise is not None else float(
+        f * prim.cfg.sigma_y * np.sqrt(np.mean(np.asarray(prim.norm.y_std, dtype=np.float64) ** 2)))
+    r["deepprompt_start"] = _start_only(model, test_ds, n_points)
+    return r
 
 
 def _start_only(model, test: DemoDataset, n_points: int) -> float:
@@ -289,15 +367,17 @@ CV_GRID = dict(latent_dims=(32, 64, 140), cov_regs=(0.0, 0.01, 0.02, 0.05, 0.1, 
 
 
 def run(scale: Scale, out: pathlib.Path, train_config: TrainConfig | None = None,
-        log: Callable[[str], None] = print) -> dict:
+        log: Callable[[str], None] = print, cache: UnitCache | None = None, jobs: int = 1) -> dict:
     """Experiment 4 at ``scale``; writes ``small_data.{json,md}`` under ``out``: the base config with
     :data:`RESIDUAL_CONFIG`, its latent size / ``basis_cov_reg`` / MAP noise chosen by cross-validation
     on the training demos over :data:`CV_GRID` and the residual kept or dropped on validation (top level
-    of the JSON), and the base config unchanged (``plain``, MAP noise factor chosen on the validation demos)."""
+    of the JSON), and the base config unchanged (``plain``, MAP noise factor chosen on the validation demos).
+    ``cache`` / ``jobs``: see :func:`small_data`; the returned dict's ``units`` is the summed
+    :class:`UnitReport` (not in the JSON)."""
     base = train_config or common.base_train_config()
     cfg = common.train_config(base, scale.small_steps, max(1, scale.small_steps // 8), 0)
     kw = dict(n_train=scale.small_n_train, n_test=scale.small_n_test, seeds=range(scale.small_seeds),
-              task=common.small_data_task(scale), log=log)
+              task=common.small_data_task(scale), log=log, cache=cache, jobs=jobs)
     data = default_data(kw["n_train"], kw["n_test"], kw["task"])
     log(" residual decoder (RESIDUAL_CONFIG, latent / basis_cov_reg / MAP noise by cross-validation on CV_GRID):")
     res = small_data(dataclasses.replace(cfg, **RESIDUAL_CONFIG), data=data, cv_grid=CV_GRID, residual_select=True, **kw)
@@ -306,4 +386,5 @@ def run(scale: Scale, out: pathlib.Path, train_config: TrainConfig | None = None
     md = (res.markdown() + "\n## Reference: the plain decoder (base config, unchanged)\n\n"
           + plain.markdown().split("\n", 2)[2])
     files = common.write_outputs(out, "small_data", {**res.to_json(), "plain": plain.to_json()}, md)
-    return {**res.to_json(), "plain": plain.to_json(), "files": [str(f) for f in files]}
+    units = UnitReport(**res.units).add(UnitReport(**plain.units)).to_json()
+    return {**res.to_json(), "plain": plain.to_json(), "files": [str(f) for f in files], "units": units}

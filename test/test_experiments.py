@@ -1,10 +1,13 @@
 """The experiment harness (experiments/run.py): a tiny end-to-end run of every experiment through the
-command line, and the reconstruction table on data with every input type. Seeded; ~1 min."""
+command line, the same command again (every unit read back), the units computed in 2 worker
+processes and a run resumed after some units were lost, and the reconstruction table on data with
+every input type. Seeded; ~1 min."""
 import dataclasses
 import json
 import math
 import os
 import pathlib
+import shutil
 import subprocess
 import sys
 
@@ -18,20 +21,26 @@ sys.path.insert(0, str(ROOT))
 from deepprompt_ros.core.baselines import MODEL_CLASSES  # noqa: E402
 from deepprompt_ros.core.dataset import Demonstration, DemoDataset  # noqa: E402
 from experiments import common, reconstruction  # noqa: E402
-from experiments.run import EXPERIMENTS  # noqa: E402
+from experiments.run import EXPERIMENTS, UNIT_EXPERIMENTS  # noqa: E402
+from experiments.units import Unit, UnitCache  # noqa: E402
 
 torch.set_num_threads(1)
 KINDS = [c.kind for c in MODEL_CLASSES]
 
 
+def _cli(out, *args):
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MPLBACKEND="Agg")
+    proc = subprocess.run([sys.executable, str(ROOT / "experiments" / "run.py"), "--scale", "tiny", "--out", str(out),
+                           *args], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stdout[-3000:]
+    return proc.stdout
+
+
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("experiments")
-    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MPLBACKEND="Agg")
-    proc = subprocess.run([sys.executable, str(ROOT / "experiments" / "run.py"), "--scale", "tiny", "--out", str(out)],
-                          cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stdout[-3000:]
-    return out, proc.stdout
+    return out, _cli(out)
 
 
 def _load(out, name):
@@ -139,6 +148,108 @@ def test_bimodal_cases_parsed_from_the_bench_script(tiny_run):
     for name in ("DeepProMP", "ProMP"):
         v = res["conflict"][name]
         assert _finite_pos(v["miss_x025"] + v["miss_x075"]) and _finite_pos(v["rms_to_nearest_demo_median"])
+
+
+# ------------------------------------------------------------------------------------------------
+# Units: resumed and parallel runs give the same results
+# ------------------------------------------------------------------------------------------------
+
+def _units(out):
+    return json.loads((out / "timings.json").read_text())["units"]
+
+
+def _results(out, names=UNIT_EXPERIMENTS):
+    """What the unit experiments ``names`` measured (no wall times): reconstruction MSEs, refinement
+    curves, small-data MSEs and choices."""
+    res = {}
+    if "reconstruction" in names:
+        res["reconstruction"] = {t: {k: [r["mse"] for r in rs] for k, rs in v["runs"].items()}
+                                 for t, v in _load(out, "reconstruction")["tasks"].items()}
+    if "refinement" in names:
+        res["refinement"] = {k: c["per_set"] for k, c in _load(out, "refinement")["curves"].items()}
+    if "small_data" in names:
+        sd = _load(out, "small_data")
+        keys = ("mse", "check", "refine_reachable", "map_noise_std", "residual_used", "residual_val", "config")
+        res["small_data"] = {name: {k: d[k] for k in keys} for name, d in (("residual", sd), ("plain", sd["plain"]))}
+    return res
+
+
+def test_unit_files_and_timings(tiny_run):
+    out, stdout = tiny_run
+    units = _units(out)
+    assert set(units) == set(UNIT_EXPERIMENTS)
+    # tiny: 6 models x 2 seeds; 3 N x 2 initializations; small data: cross-validation + 1 seed x 2 decoders
+    assert {k: (u["units"], u["computed"], u["reused"]) for k, u in units.items()} == {
+        "reconstruction": (12, 12, 0), "refinement": (6, 6, 0), "small_data": (3, 3, 0)}
+    files = sorted(p.name for p in (out / "units" / "reconstruction").iterdir())
+    assert len(files) == 12 and all(f.endswith(".json") for f in files)  # no temp files left
+    assert any(f.startswith("gen3_lite_reach__deepprompt__s0__") for f in files)
+    rec = json.loads(next((out / "units" / "reconstruction").glob("gen3_lite_reach__promp__s1__*.json")).read_text())
+    run = _load(out, "reconstruction")["tasks"]["gen3_lite_reach"]["runs"]["promp"][1]
+    assert rec["result"] == run and rec["wall_s"] > 0 and rec["parts"]["train_config"]["seed"] == 1
+    t = json.loads((out / "timings.json").read_text())
+    assert t["jobs"] == 1 and t["unit_compute_s"]["total"] == pytest.approx(sum(u["compute_s"] for u in units.values()))
+    assert "(reused)" not in stdout
+
+
+def test_second_invocation_reuses_every_unit(tiny_run, tmp_path):
+    out0, _ = tiny_run
+    out = tmp_path / "again"
+    shutil.copytree(out0, out)
+    stdout = _cli(out, "--only", *UNIT_EXPERIMENTS)
+    units = _units(out)
+    assert all(u["computed"] == 0 and u["reused"] == u["units"] > 0 for u in units.values()), units
+    assert stdout.count("(reused)") == 12 + 6 + 3
+    assert "units: 12, 12 reused from" in stdout
+    # the same tables, wall times of the units included (they are the stored ones)
+    for name in UNIT_EXPERIMENTS:
+        assert _load(out, name) == _load(out0, name), name
+    t0, t1 = json.loads((out0 / "timings.json").read_text()), json.loads((out / "timings.json").read_text())
+    assert t1["unit_compute_s"] == pytest.approx(t0["unit_compute_s"])  # summed over the units, not this invocation
+
+
+def test_parallel_and_resumed_units_give_the_same_results(tiny_run, tmp_path):
+    out0, _ = tiny_run
+    out = tmp_path / "jobs2"
+    names = ("reconstruction", "refinement")  # (tiny small data has one seed: nothing to run in parallel)
+    stdout = _cli(out, "--only", *names, "--jobs", "2")
+    assert stdout.count("in 2 worker processes") == 2
+    assert all(u["computed"] == u["units"] and u["jobs"] == 2 for u in _units(out).values())
+    assert _results(out, names) == _results(out0, names)
+    # lose 3 reconstruction units and one refinement unit: only those are computed again
+    lost = sorted((out / "units" / "reconstruction").glob("*__s1__*.json"))[:3]
+    lost += list((out / "units" / "refinement").glob("N5__prior__*.json"))
+    for f in lost:
+        f.unlink()
+    _cli(out, "--only", *names)
+    units = _units(out)
+    assert (units["reconstruction"]["computed"], units["refinement"]["computed"]) == (3, 1)
+    assert units["reconstruction"]["reused"] == 9 and units["refinement"]["reused"] == 5
+    assert _results(out, names) == _results(out0, names)
+
+
+def test_fresh_cache_reads_nothing(tmp_path):
+    unit = Unit("u", {"a": 1})
+    UnitCache(tmp_path).put(unit, {"x": 1.5}, 0.1)
+    assert UnitCache(tmp_path).get(unit)["result"] == {"x": 1.5}
+    assert UnitCache(tmp_path, fresh=True).get(unit) is None
+    assert UnitCache(tmp_path).get(Unit("u", {"a": 2})) is None  # other parts, other key
+    assert [p.name for p in tmp_path.iterdir()] == [f"u__{unit.key}.json"]
+
+
+def test_unit_keys_follow_what_determines_the_result():
+    data = common.load_task("bimodal_sine", common.SCALES["tiny"], sizes=(10, 4, 4))
+    base = common.base_train_config()
+    scale = common.SCALES["tiny"]
+    keys = [u.key for u in reconstruction.task_units(data, base, scale)]
+    assert len(set(keys)) == len(keys) == 12  # one per model and seed
+    assert keys == [u.key for u in reconstruction.task_units(data, base, scale)]  # deterministic
+    more = dataclasses.replace(scale, recon_steps=31)
+    assert not set(keys) & {u.key for u in reconstruction.task_units(data, base, more)}
+    other = common.load_task("bimodal_sine", scale, sizes=(10, 4, 5))
+    assert not set(keys) & {u.key for u in reconstruction.task_units(other, base, scale)}
+    lr = dataclasses.replace(base, lr=base.lr * 2)
+    assert not set(keys) & {u.key for u in reconstruction.task_units(data, lr, scale)}
 
 
 # ------------------------------------------------------------------------------------------------
