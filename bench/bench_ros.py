@@ -139,7 +139,7 @@ def _wait_file(path: pathlib.Path, ex=None) -> None:
 SUB_POLL = 0.02  # s between two reads of the subscriber's queues (it records DDS reception times)
 
 
-def role_subscriber(out: str, gate: str, states: bool) -> None:
+def role_subscriber(out: str, gate: str, states: bool, priority: int = 0) -> None:
     """Record joint_command (arrival time, stamp, q, qd) and, if ``states``, joint_states (q),
     between the files <gate>.go and <gate>.stop (messages before are dropped); <gate>.ready once
     subscribed.
@@ -149,7 +149,17 @@ def role_subscriber(out: str, gate: str, states: bool) -> None:
     1 s; the arrival time of each is the instant the DDS layer of this process received it
     (message info ``received_timestamp``, system clock), not the instant Python got to it. They are
     decoded after the run.
+
+    ``priority`` > 0: SCHED_FIFO at that priority for the whole process, set before rclpy starts so
+    the DDS threads that receive (and time-stamp) the messages inherit it — as a controller process
+    on a real-time setup runs.
     """
+    if priority > 0:
+        from deepprompt_ros.ros.stream_loop import set_fifo_priority
+
+        why = set_fifo_priority(priority)
+        if why:
+            print(f"subscriber: {why}", flush=True)
     import rclpy
     from rclpy.qos import QoSProfile
     from rclpy.serialization import deserialize_message
@@ -384,6 +394,11 @@ def main(argv=None) -> int:
                     help="extra sim_bridge parameter name:=value (e.g. joint_states_rate_hz:=250)")
     ap.add_argument("--model", help="model file to serve as 'reach' (6 Gen3 lite joints, context 'object'); "
                     "default: models/gen3_lite_reach.safetensors, else a tiny model trained here")
+    ap.add_argument("--subscriber-priority", type=int, default=50, metavar="P",
+                    help="SCHED_FIFO priority of the stream subscriber processes, as a real-time consumer of the "
+                    "stream runs (default 50, the server's realtime_priority default; 0 = normal scheduling; "
+                    "refused without CAP_SYS_NICE -> normal, said in the output)")
+    ap.add_argument("--priority", type=int, default=0, help=argparse.SUPPRESS)
     ap.add_argument("--role", choices=("subscriber", "client"), help=argparse.SUPPRESS)
     ap.add_argument("--out", help=argparse.SUPPRESS)
     ap.add_argument("--seconds", type=float, default=0.0, help=argparse.SUPPRESS)
@@ -392,7 +407,7 @@ def main(argv=None) -> int:
     ap.add_argument("--states", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.role == "subscriber":
-        role_subscriber(args.out, args.gate, args.states)
+        role_subscriber(args.out, args.gate, args.states, args.priority)
         return 0
     if args.role == "client":
         role_client(args.out, args.gate, args.seconds, args.calls)
@@ -439,9 +454,10 @@ def main(argv=None) -> int:
         # measuring processes start now, in parallel with the nodes
         g_sub, g_cli, g_sub2 = tmp / "stream", tmp / "client", tmp / "limits"
         # quick: no random executions; the limits are checked on the phase-1 stream (+ joint states)
-        sub = start_role("subscriber", tmp / "stream.npz", g_sub, ["--states"] if args.quick else [])
+        prio = ["--priority", str(args.subscriber_priority)]
+        sub = start_role("subscriber", tmp / "stream.npz", g_sub, (["--states"] if args.quick else []) + prio)
         cli = start_role("client", tmp / "client.npz", g_cli, ["--seconds", str(stream_s), "--calls", str(calls)])
-        sub2 = None if args.quick else start_role("subscriber", tmp / "limits.npz", g_sub2, ["--states"])
+        sub2 = None if args.quick else start_role("subscriber", tmp / "limits.npz", g_sub2, ["--states"] + prio)
         orch = Orchestrator(env)
         end = time.monotonic() + 60
         while "receiving joint_states" not in server.output():
@@ -544,7 +560,8 @@ def main(argv=None) -> int:
     print(f"primitive_server benchmark ({'quick' if args.quick else 'full'}, loop_mode={args.loop_mode}, "
           f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs; 1-min load average before the "
           f"start {load_before:.2f}" + "".join(f", server {p}" for p in args.param)
-          + "".join(f", sim_bridge {p}" for p in args.sim_param) + ")")
+          + "".join(f", sim_bridge {p}" for p in args.sim_param)
+          + (f", subscribers SCHED_FIFO {args.subscriber_priority}" if args.subscriber_priority > 0 else "") + ")")
     print(f"{'metric':34s} value")
     for k, v in metrics.items():
         print(f"{k:34s} {v:.4g}" if isinstance(v, float) else f"{k:34s} {v}")

@@ -112,9 +112,15 @@ class ServerConfig:
                                         "another Python thread keeps the interpreter lock while the control "
                                         "loop waits for it (Python's default is 0.005 s).",
                                         min=1e-5, max=0.1, unit="s")
-    realtime_priority: int = _param(0, "SCHED_FIFO priority of the control thread ('thread' mode); 0 = normal "
-                                    "scheduling. Needs CAP_SYS_NICE; refused -> a warning, normal scheduling.",
+    realtime_priority: int = _param(50, "SCHED_FIFO priority of the control thread ('thread' mode; with "
+                                    "loop_process, of every thread of the control process, so that none "
+                                    "holding the interpreter lock is preempted by another process); 0 = normal "
+                                    "scheduling. Needs CAP_SYS_NICE (root, or rtprio in limits.conf); refused "
+                                    "-> a warning, normal scheduling (as ros2_control's controller_manager).",
                                     min=0, max=99)
+    control_cpu: int = _param(-1, "loop_process: pin the control process (all its threads) to this CPU "
+                              "(os.sched_setaffinity, like ros2_control's cpu_affinity); -1 = any CPU. A CPU "
+                              "the machine does not have -> a warning, not pinned.", min=-1, max=1023)
     loop_process: bool = _param(True, "'thread' mode: run the control loop (command stream, JointTrajectory "
                                 "output, joint_states reader) in a child process with its own interpreter, "
                                 "so that service handlers and the 1 kHz loop do not share one interpreter "

@@ -14,7 +14,7 @@ Link: one Unix socket pair (``multiprocessing.connection.Connection``, pickled t
 * server -> child: ``("init", {...})`` once (limits, dt, ServerConfig, joint names, topics, node
   name), then ``("start", key, ExecutionPlan)`` (the per-Execute decoded dense trajectory),
   ``("cancel", key)``, ``("rate", key, phase_rate)``, ``("stop",)``;
-* child -> server: ``("ready", pid, priority_error)``, every ``STATUS_PERIOD`` s
+* child -> server: ``("ready", pid, warnings)`` (refused priority or CPU), every ``STATUS_PERIOD`` s
   ``("status", joint_states stamp, key, Stage, Progress)`` of the running goal (Execute feedback,
   SetPhaseRate's check, the stale check of a new Execute), ``("done", key, Outcome, loop summary)``
   when a goal's last sample has been published.
@@ -253,6 +253,23 @@ def _child(fd: int, parent_pid: int) -> int:
     conn = Connection(fd)
     kind, init = conn.recv()
     assert kind == "init", kind
+    cfg = init["cfg"]
+    warnings = []
+    if cfg.control_cpu >= 0:  # before any thread exists: all inherit it
+        try:
+            os.sched_setaffinity(0, {cfg.control_cpu})
+        except (OSError, ValueError) as exc:
+            warnings.append(f"control_cpu {cfg.control_cpu} refused ({exc}); the control process runs on any "
+                            f"of CPUs {sorted(os.sched_getaffinity(0))}")
+    if cfg.realtime_priority > 0:
+        # Every thread of this process at SCHED_FIFO, set here before rclpy (its import starts two
+        # threads), DDS and the loop create theirs (they inherit it): a normal-priority thread
+        # holding the interpreter lock could otherwise be preempted by any other process while the
+        # real-time control thread waits for that lock (priority inversion). The other threads sleep almost always (status every STATUS_PERIOD,
+        # the link, the JointTrajectory snapshots); the control thread sets its own priority again.
+        from deepprompt_ros.ros.stream_loop import set_fifo_priority
+
+        set_fifo_priority(cfg.realtime_priority)  # refused: the control thread reports it
 
     import rclpy
     from rclpy.signals import SignalHandlerOptions
@@ -261,7 +278,6 @@ def _child(fd: int, parent_pid: int) -> int:
     from deepprompt_ros.ros.stream_loop import (ExecutionController, StreamLoop, freeze_startup_objects,
                                                 set_switch_interval)
 
-    cfg = init["cfg"]
     set_switch_interval(cfg.gil_switch_interval)
     rclpy.init(args=[], signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node(init["node_name"], namespace=init["namespace"], start_parameter_services=False)
@@ -306,7 +322,7 @@ def _child(fd: int, parent_pid: int) -> int:
     threading.Thread(target=receive, name="link_reader", daemon=True).start()
     freeze_startup_objects()
     try:
-        send(("ready", os.getpid(), loop.priority_error))
+        send(("ready", os.getpid(), "; ".join(w for w in (*warnings, loop.priority_error) if w)))  # warnings
         while not stop.is_set():
             wake.wait(STATUS_PERIOD)
             wake.clear()
