@@ -18,7 +18,9 @@ Metrics (last line: space-separated name=value pairs):
   (its log): the computation, without transport and executor dispatch;
 * ``stream_hz`` -- joint_command messages received per second by the subscriber during one long
   Execute goal (arrival = the instant the subscriber process's DDS layer received the message,
-  see role_subscriber: the Python measuring code neither delays nor loads the stream);
+  see role_subscriber: the Python measuring code neither delays nor loads the stream). The
+  subscriber runs as a real-time consumer (a controller) would: SCHED_FIFO ``--subscriber-priority``
+  (default 50; 0 = normal scheduling); ``subscriber_fifo_priority`` says what it got (0 if refused);
 * ``stream_period_p99_err_ms`` -- p99 over inter-arrival intervals of |interval - dt| (dt = 1 ms);
 * ``stream_missed`` -- intervals longer than 1.5 dt (each is a command that arrived at least half a
   period late or not at all); ``stream_lost`` -- gaps in the commands' header.stamp (the nominal
@@ -492,6 +494,9 @@ def main(argv=None) -> int:
         go(g_sub, "stop")
         stream = _load(tmp / "stream.npz", sub, 60)
         metrics = stream_metrics(stream, dt)
+        # the subscriber's scheduling as it ran (a refused SCHED_FIFO leaves it at normal priority)
+        metrics["subscriber_fifo_priority"] = (0 if args.subscriber_priority <= 0 or "refused" in sub.output()
+                                               else args.subscriber_priority)
         # the server's own view (publication instants, no transport / subscriber scheduling)
         found = re.findall(r"publish period error p50 ([\d.]+) ms, p99 ([\d.]+) ms, (\d+) of (\d+) intervals",
                            server.output())
