@@ -289,3 +289,22 @@ def test_reconstruction_covers_every_model_and_conditioning(tmp_path):
     md = reconstruction.markdown({"goal": res}, {"seeds": 2, "steps": 8})
     promp_row = next(line for line in md.splitlines() if line.startswith("| ProMP |"))
     assert promp_row.count("—") == 2  # the two image columns
+
+
+def test_context_ablation_cli_reports_every_conditioning_and_refuses_bad_overrides(tmp_path, capsys):
+    """experiments/context_ablation.py on the built-in reach task, a few updates: every MSE finite
+    and positive; Bayesian aggregation can only add precision, so the posterior given the first
+    point AND the context is at most as wide as given either alone; a bad --set is refused (exit 2)."""
+    from experiments import context_ablation
+
+    out = tmp_path / "ablation.json"
+    assert context_ablation.main(["gen3_lite_reach", "--steps", "20", "--out", str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert res["sizes"] == [200, 50, 100]
+    assert len(res["mse"]) == 8 and all(math.isfinite(v) and v > 0 for v in res["mse"].values())
+    var = res["mean_posterior_var_z"]
+    assert var["first point + context"] <= min(var["first point"], var["context"]) <= 1.0
+    capsys.readouterr()
+    assert context_ablation.main(["gen3_lite_reach", "--steps", "20", "--set", "p_low_info"]) == 2
+    assert "expected FIELD=VALUE" in capsys.readouterr().err
+    assert context_ablation.main(["gen3_lite_reach", "--steps", "20", "--set", "no_such_field=1"]) == 2
