@@ -2,6 +2,7 @@
 a crash of the child ends the running goal with INTERNAL_ERROR (no hang) and a new child takes
 over; the child dies with the server (no orphan); the in-process mode (loop_process: false) still
 executes. Real processes, real DDS (LOCALHOST discovery, random domain)."""
+import contextlib
 import os
 import pathlib
 import re
@@ -148,20 +149,28 @@ def test_child_dies_with_the_server(nodes):
     assert not alive(pid), "control process outlived the server"
 
 
-def test_in_process_loop_still_executes(tmp_path):
-    env, sim, server = start(tmp_path, "inproc", {"loop_process": False})
+@contextlib.contextmanager
+def serving(tmp_path, name, params):
+    """sim_bridge + primitive_server with ``params``, ready (action server up, joint_states received):
+    yields (client, action client, server); stops both processes."""
+    env, sim, server = start(tmp_path, name, params)
     try:
         with RosTestClient(env) as client:
             ac = ActionClient(client.node, Execute, f"{SRV}/execute")
             assert client.wait_for(ac.server_is_ready, 60), server.output_tail()
             assert client.wait_for(lambda: "receiving joint_states" in server.output(), 60), server.output_tail()
-            res = run_goal(client, ac, server, 1.5)
-            assert res.success, res.message
-            assert "in this process" in server.output() and not CHILD.search(server.output())
+            yield client, ac, server
             ac.destroy()
     finally:
         server.stop()
         sim.stop()
+
+
+def test_in_process_loop_still_executes(tmp_path):
+    with serving(tmp_path, "inproc", {"loop_process": False}) as (client, ac, server):
+        res = run_goal(client, ac, server, 1.5)
+        assert res.success, res.message
+        assert "in this process" in server.output() and not CHILD.search(server.output())
 
 
 def test_control_cpu_pins_every_thread_and_a_missing_cpu_is_a_warning(tmp_path):
@@ -169,22 +178,13 @@ def test_control_cpu_pins_every_thread_and_a_missing_cpu_is_a_warning(tmp_path):
     machine does not have is a warning and the loop still executes on any CPU."""
     cpu = max(os.sched_getaffinity(0))
     for name, value in (("pinned", cpu), ("absent", 1023)):
-        env, sim, server = start(tmp_path, name, {"control_cpu": value})
-        try:
-            with RosTestClient(env) as client:
-                ac = ActionClient(client.node, Execute, f"{SRV}/execute")
-                assert client.wait_for(ac.server_is_ready, 60), server.output_tail()
-                assert client.wait_for(lambda: "receiving joint_states" in server.output(), 60), server.output_tail()
-                res = run_goal(client, ac, server, 0.5)
-                assert res.success, res.message
-                pid = int(CHILD.findall(server.output())[-1])
-                masks = {t.name: os.sched_getaffinity(int(t.name)) for t in pathlib.Path(f"/proc/{pid}/task").iterdir()}
-                if name == "pinned":
-                    assert len(masks) >= 4 and all(m == {cpu} for m in masks.values()), masks
-                else:
-                    assert "control_cpu 1023 refused" in server.output(), server.output_tail()
-                    assert all(m == os.sched_getaffinity(0) for m in masks.values()), masks
-                ac.destroy()
-        finally:
-            server.stop()
-            sim.stop()
+        with serving(tmp_path, name, {"control_cpu": value}) as (client, ac, server):
+            res = run_goal(client, ac, server, 0.5)
+            assert res.success, res.message
+            pid = int(CHILD.findall(server.output())[-1])
+            masks = {t.name: os.sched_getaffinity(int(t.name)) for t in pathlib.Path(f"/proc/{pid}/task").iterdir()}
+            if name == "pinned":
+                assert len(masks) >= 4 and all(m == {cpu} for m in masks.values()), masks
+            else:
+                assert "control_cpu 1023 refused" in server.output(), server.output_tail()
+                assert all(m == os.sched_getaffinity(0) for m in masks.values()), masks
