@@ -64,18 +64,8 @@ def run_goal(client, ac, server, duration, feedback=None, before_result=None):
 
 @pytest.fixture(scope="module")
 def nodes(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("control_process")
-    env, sim, server = start(tmp, "child", {})
-    try:
-        with RosTestClient(env) as client:
-            ac = ActionClient(client.node, Execute, f"{SRV}/execute")
-            assert client.wait_for(ac.server_is_ready, 60), server.output_tail()
-            assert client.wait_for(lambda: "receiving joint_states" in server.output(), 60), server.output_tail()
-            yield dict(client=client, ac=ac, server=server, sim=sim, tmp=tmp)
-            ac.destroy()
-    finally:
-        server.stop()
-        sim.stop()
+    with serving(tmp_path_factory.mktemp("control_process"), "child", {}) as (client, ac, server):
+        yield dict(client=client, ac=ac, server=server)
 
 
 def thread_policies(pid: int) -> dict[str, tuple[int, int]]:
