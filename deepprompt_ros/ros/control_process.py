@@ -265,8 +265,9 @@ def _child(fd: int, parent_pid: int) -> int:
         # Every thread of this process at SCHED_FIFO, set here before rclpy (its import starts two
         # threads), DDS and the loop create theirs (they inherit it): a normal-priority thread
         # holding the interpreter lock could otherwise be preempted by any other process while the
-        # real-time control thread waits for that lock (priority inversion). The other threads sleep almost always (status every STATUS_PERIOD,
-        # the link, the JointTrajectory snapshots); the control thread sets its own priority again.
+        # real-time control thread waits for that lock (priority inversion). The other threads sleep
+        # almost always (status every STATUS_PERIOD, the link, the JointTrajectory snapshots); the
+        # control thread sets its own priority again.
         from deepprompt_ros.ros.stream_loop import set_fifo_priority
 
         set_fifo_priority(cfg.realtime_priority)  # refused: the control thread reports it
