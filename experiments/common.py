@@ -237,6 +237,14 @@ def source_digest(patterns: Sequence[str]) -> str:
     return _SOURCE_DIGESTS[patterns]
 
 
+
+def code_parts(patterns: Sequence[str]) -> dict:
+    """The parts of a unit's key that identify the code computing it: the :func:`source_digest` of
+    ``patterns`` and the torch / numpy versions."""
+    import torch
+
+    return {"sources": source_digest(patterns), "versions": {"torch": torch.__version__, "numpy": np.__version__}}
+
 _TASKS: list = []
 
 

@@ -89,14 +89,11 @@ def task_units(task: TaskData, base: TrainConfig, scale: Scale, kinds: Sequence[
     determines its result: the training config as :func:`common.train_config` builds it, the scale's
     steps, the data (sizes and :func:`common.dataset_digest`), the digest of :data:`SOURCES` and the
     torch / numpy versions."""
-    import torch
-
     data = {"sizes": [len(task.train), len(task.val), len(task.test)],
             "digest": common.dataset_digest([task.train, task.val, task.test])}
     fixed = {"experiment": "reconstruction", "task": task.name, "data": data,
              "scale": {"recon_steps": scale.recon_steps, "recon_val_every": scale.recon_val_every},
-             "n_via_extra": N_VIA_EXTRA, "sources": common.source_digest(SOURCES),
-             "versions": {"torch": torch.__version__, "numpy": np.__version__}}
+             "n_via_extra": N_VIA_EXTRA, **common.code_parts(SOURCES)}
     units = []
     for cls in MODEL_CLASSES:
         if kinds and cls.kind not in kinds:

@@ -103,8 +103,6 @@ def run(scale: Scale, out: pathlib.Path, prim: DeepProMP | None = None, demos: l
     (:func:`curve_unit`); with the default model and data (``prim``, ``demos`` None) finished units are
     read from ``cache`` and the others computed (``jobs`` worker processes); a given ``prim`` / ``demos``
     is computed here, uncached. The returned dict's ``units`` is the :class:`UnitReport` (not in the JSON)."""
-    import torch
-
     default = prim is None or demos is None
     if default:
         prim, demos = default_model_and_data(scale)
@@ -113,8 +111,7 @@ def run(scale: Scale, out: pathlib.Path, prim: DeepProMP | None = None, demos: l
     keys = [(n, init_name) for n in scale.refine_n_via for init_name in INITS]
     fixed = {"experiment": "refinement", "checkpoint": common.file_digest([CHECKPOINT]),
              "data": {"n_sets": len(demos), "digest": _demos_digest(demos)}, "budgets": list(budgets), "tol": TOL,
-             "sources": common.source_digest(SOURCES), "versions": {"torch": torch.__version__,
-                                                                   "numpy": np.__version__}}
+             **common.code_parts(SOURCES)}
     units = [Unit(f"N{n}__{init_name}", {**fixed, "n_via": n, "init": init_name}, (n, init_name, budgets),
                   cost=float(n)) for n, init_name in keys]
 

@@ -274,11 +274,9 @@ SOURCES = ("experiments/small_data.py", "experiments/common.py", "deepprompt_ros
 def unit_context(train_ds: DemoDataset, test_ds: DemoDataset) -> dict:
     """The parts every unit of this experiment shares: the data digest, the digest of :data:`SOURCES`
     and the torch / numpy versions."""
-    import torch
-
     return {"experiment": "small_data",
             "data": {"sizes": [len(train_ds), len(test_ds)], "digest": common.dataset_digest([train_ds, test_ds])},
-            "sources": common.source_digest(SOURCES), "versions": {"torch": torch.__version__, "numpy": np.__version__}}
+            **common.code_parts(SOURCES)}
 
 
 def cv_unit(shared: dict, n_points: int, decoder_basis: int, basis_width: float, n_via: int, cv_grid: dict) -> dict:
