@@ -77,7 +77,7 @@ class ControlProcess:
         self._stopping = False
         self._dead = ""          # why no child runs ('' = one runs)
         self.restarts = 0
-        self.priority_error = ""
+        self.warnings = ""  #: the child's start-up warnings (refused priority or CPU), "" = none
         self.pid = 0
         self._ready = threading.Event()
         self._spawn()
@@ -152,11 +152,11 @@ class ControlProcess:
                 goal.max_tracking_error = max(goal.max_tracking_error, outcome.max_tracking_error)
                 goal._finish(outcome)
         elif kind == "ready":
-            _, pid, self.priority_error = msg
+            _, pid, self.warnings = msg
             self._ready.set()
             self._log.info(f"control loop running in its own process (pid {pid})")
-            if self.priority_error:
-                self._log.warn(self.priority_error)
+            if self.warnings:
+                self._log.warn(self.warnings)
 
     def _send(self, msg) -> None:
         try:
