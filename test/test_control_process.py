@@ -1,7 +1,8 @@
 """primitive_server's control loop in a child process (loop_process: true, the default):
 a crash of the child ends the running goal with INTERNAL_ERROR (no hang) and a new child takes
-over; the child dies with the server (no orphan); the in-process mode (loop_process: false) still
-executes. Real processes, real DDS (LOCALHOST discovery, random domain)."""
+over; the child dies with the server (no orphan); every thread of the child runs SCHED_FIFO by
+default (or the refusal is logged); ``control_cpu`` pins it; the in-process mode (loop_process:
+false) still executes. Real processes, real DDS (LOCALHOST discovery, random domain)."""
 import contextlib
 import os
 import pathlib
