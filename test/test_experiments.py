@@ -127,13 +127,51 @@ def test_small_data_numbers_are_consistent(tiny_run):
     # training demos (argmin of its table), and reach the trained model and the MAP row
     cv = res["cv"]
     assert cv["n_demos"] == res["n_train"] and cv["folds"] == res["n_train"]  # leave-one-out
-    assert [cv["latent_dim"], cv["basis_cov_reg"], cv["noise_std"], cv["cv_mse"]] == min(cv["table"], key=lambda r: r[3])
+    best = min(cv["table"], key=lambda r: r[3])
+    assert [cv["latent_dim"], cv["basis_cov_reg"], cv["noise_std"], cv["cv_mse"], cv["basis_cov_reg_units"]] == best
     assert res["config"]["latent_dim"] == cv["latent_dim"] and res["config"]["basis_cov_reg"] == cv["basis_cov_reg"]
+    assert res["config"]["basis_cov_reg_units"] == cv["basis_cov_reg_units"]
+    assert {r[4] for r in cv["table"]} == {"normalized", "raw"}
     assert res["map_noise_std"] == [cv["noise_std"]]
-    # the residual is kept or dropped by its validation MAP MSE
+    # the residual is judged by 3-fold cross-validation of the training on the training demos and kept only
+    # if its per-demo improvement exceeds one standard error
+    assert res["residual_folds"] == 3
     (val_on, val_off), = res["residual_val"]
-    assert res["residual_used"] == [0.0 if val_off < val_on else res["config"]["residual_scale"]]
+    (diff, se), = res["residual_val_diff_se"]
+    assert diff == pytest.approx(val_on - val_off, rel=1e-9, abs=1e-15) and se > 0
+    assert res["residual_used"] == [res["config"]["residual_scale"] if diff + se < 0 else 0.0]
     assert "cv" not in res["plain"] or not res["plain"]["cv"]
+
+
+def test_the_residual_is_kept_only_beyond_one_standard_error():
+    from experiments.small_data import keep_residual
+
+    off = np.array([[1.0, 2.0, 3.0, 4.0]] * 2)  # (draws, demos)
+    keep, diff, se = keep_residual(off - 0.5, off)  # better on every demo by the same amount: SE 0
+    assert keep and diff == pytest.approx(-0.5) and se == pytest.approx(0.0)
+    noisy = off + np.array([-0.6, 0.4, -0.5, 0.5])  # mean -0.05, SE ≈ 0.29: within noise → the simpler model
+    keep, diff, se = keep_residual(noisy, off)
+    assert not keep and diff == pytest.approx(-0.05) and se == pytest.approx(np.std([-0.6, 0.4, -0.5, 0.5], ddof=1) / 2)
+    assert not keep_residual(off + 0.1, off)[0]
+    keep, _, se = keep_residual(np.array([[1.0], [2.0]]), np.array([[1.5], [2.5]]))  # one demo: SE over the draws
+    assert keep and se == 0.0
+    with pytest.raises(ValueError, match="equal"):
+        keep_residual(off[:, :3], off)
+
+
+def test_residual_cross_validation_holds_out_every_training_demo_once():
+    from deepprompt_ros.core.train import TrainConfig
+    from experiments.small_data import RESIDUAL_CONFIG, default_data, residual_cv_errors
+
+    train, _ = default_data(12, 2)
+    cfg = TrainConfig(**{**RESIDUAL_CONFIG, "latent_dim": 16}, hidden=16, steps=4, val_every=2, batch_size=4,
+                      threads=1, n_points=40)
+    on, off = residual_cv_errors(train, cfg, 3, n_via=3, noise_factor=float("nan"), prior="standard", n_points=40,
+                                 noise_std=1e-2, draws=2)
+    assert on.shape == off.shape == (2, 12) and np.all(np.isfinite(on)) and np.all(off > 0)
+    assert np.abs(on - off).max() > 0  # the trained residual changes the fit
+    with pytest.raises(ValueError, match="folds"):
+        residual_cv_errors(train, cfg, 7, 3, float("nan"), "standard", 40, 1e-2, 2)
 
 
 def test_bimodal_cases_parsed_from_the_bench_script(tiny_run):

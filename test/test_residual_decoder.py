@@ -206,7 +206,8 @@ def test_cross_validation_scores_are_held_out_gaussian_conditioning_and_the_mini
                                   noise_stds=grid["noise_stds"], n_via=3, folds=3, draws=2, seed=4)
     assert cv["folds"] == 3 and len(cv["table"]) == 8
     best = min(cv["table"], key=lambda r: r[3])
-    assert (cv["latent_dim"], cv["basis_cov_reg"], cv["noise_std"], cv["cv_mse"]) == tuple(best)
+    assert (cv["latent_dim"], cv["basis_cov_reg"], cv["noise_std"], cv["cv_mse"]) == tuple(best[:4])
+    assert best[4] == cv["basis_cov_reg_units"] == "normalized"  # the default: one units value
     # recompute one entry independently: full-rank latent (30 = 10 RBFs × 3 joints) = weight-space Gaussian
     # N(b, A Aᵀ) conditioned on the held-out demo's via-points (the fold assignment of the function)
     k, c, s = 30, 0.05, 1e-3
@@ -251,3 +252,57 @@ def test_with_residual_scale_switches_the_mlp_part_and_keeps_the_rest():
     assert prim.cfg.residual_scale == 0.3  # the original is unchanged
     with pytest.raises(ValueError, match="residual decoder"):
         _prim(nb=0)[1].with_residual_scale(0.0)
+
+
+def test_pca_regularizer_in_rad_is_lambda_identity_in_joint_units():
+    # basis_cov_reg_units "raw": the PPCA covariance is C + λ D⁻² in normalized units (D: each row's joint
+    # std), i.e. C_rad + λI in rad — ProMP's regularizer; with equal joint stds it is the normalized one
+    ds = _demos()
+    norm = fit_normalization(ds, 50)
+    phi = phase_basis(np.linspace(0, 1, 50), 10, 1.0, False)
+    yn = (np.stack([d.resampled(50) for d in ds.demos]) - norm.y_mean) / norm.y_std
+    mean0, a0, _ = pca_basis(phi, yn, 30, 0.0)
+    std = np.array([0.2, 1.0, 3.0])
+    mean, a, scale = pca_basis(phi, yn, 30, 0.05, joint_std=std)
+    np.testing.assert_allclose(mean, mean0, atol=1e-12)
+    c = a0 @ a0.T  # the demos' weight covariance (normalized units)
+    d = np.tile(std, 10)
+    lam = 0.05 * np.mean(np.diag(c) * d ** 2)
+    np.testing.assert_allclose(a @ a.T, c + np.diag(lam / d ** 2), atol=1e-10)
+    assert np.all(np.diff(scale) <= 1e-12)  # columns in decreasing variance, as the normalized PPCA's
+    _, a_iso, _ = pca_basis(phi, yn, 30, 0.05)
+    _, a_eq, _ = pca_basis(phi, yn, 30, 0.05, joint_std=np.full(3, 0.7))
+    np.testing.assert_allclose(a_eq @ a_eq.T, a_iso @ a_iso.T, atol=1e-10)
+    assert np.abs(a @ a.T - a_iso @ a_iso.T).max() > 1e-3
+
+
+def test_training_with_the_regularizer_in_rad_initializes_from_the_joint_stds():
+    ds = _demos(16)
+    cfg = TrainConfig(latent_dim=30, hidden=16, steps=5, val_every=5, batch_size=8, threads=1, decoder_basis=10,
+                      basis_init="pca", basis_lr_scale=0.0, residual_scale=0.1, basis_cov_reg=0.05,
+                      basis_cov_reg_units="raw")
+    net, norm, _ = train(ds, cfg)
+    train_ds, _ = ds.split(max(1, len(ds) // 10), seed=0)
+    n = fit_normalization(train_ds, 100)
+    phi = phase_basis(np.linspace(0, 1, 100), 10, 1.0, False)
+    yn = (np.stack([d.resampled(100) for d in train_ds.demos]) - n.y_mean) / n.y_std
+    _, a, _ = pca_basis(phi, yn, 30, 0.05, joint_std=np.asarray(n.y_std))
+    w = net.basis.weight.detach().double().numpy()
+    np.testing.assert_allclose(w @ w.T, a @ a.T, atol=1e-5)
+    with pytest.raises(ValueError, match="basis_cov_reg_units"):
+        TrainConfig(basis_cov_reg_units="rad")
+
+
+def test_cross_validation_chooses_the_regularizer_units_too():
+    ds = _demos(9, seed=1)
+    kw = dict(latent_dims=(30,), cov_regs=(0.05, 0.2), noise_stds=(1e-3,), n_via=3, folds=3, draws=2, seed=4)
+    both = cv_basis_hyperparameters(ds, 50, 10, cov_reg_units=("normalized", "raw"), **kw)
+    norm_only = cv_basis_hyperparameters(ds, 50, 10, **kw)
+    assert len(both["table"]) == 4 and {r[4] for r in both["table"]} == {"normalized", "raw"}
+    assert [r for r in both["table"] if r[4] == "normalized"] == norm_only["table"]
+    best = min(both["table"], key=lambda r: r[3])
+    assert (both["basis_cov_reg"], both["basis_cov_reg_units"], both["cv_mse"]) == (best[1], best[4], best[3])
+    raw = [r[3] for r in both["table"] if r[4] == "raw"]
+    assert all(np.isfinite(raw)) and raw != [r[3] for r in norm_only["table"]]
+    with pytest.raises(ValueError, match="cov_reg_units"):
+        cv_basis_hyperparameters(ds, 50, 10, cov_reg_units=("metres",), **kw)

@@ -30,7 +30,7 @@ import math
 import pathlib
 import sys
 import time
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 import torch
@@ -43,6 +43,7 @@ from .model import DeepProMPNet, ModelConfig, bayesian_aggregate, gaussian_kl, p
 OBJECTIVES = ("paper", "np")
 CONSISTENCY_ENCODER = ("none", "coverage", "all")
 BASIS_INITS = ("random", "pca")
+BASIS_COV_REG_UNITS = ("normalized", "raw")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,6 +62,7 @@ class TrainConfig:
     basis_init: str = "random"
     basis_lr_scale: float = 1.0
     basis_cov_reg: float = 0.0
+    basis_cov_reg_units: str = "normalized"  # λI added in normalized or in raw (rad) weight units; see pca_basis
     objective: str = "np"
     beta: float = 1.0
     kl_anneal_steps: int = 1000
@@ -108,6 +110,8 @@ class TrainConfig:
             (self.basis_width > 0 and self.residual_scale >= 0, "basis_width must be > 0 and residual_scale >= 0"),
             (self.basis_cov_reg >= 0, f"basis_cov_reg must be >= 0, got {self.basis_cov_reg}"),
             (self.basis_lr_scale >= 0, f"basis_lr_scale must be >= 0, got {self.basis_lr_scale}"),
+            (self.basis_cov_reg_units in BASIS_COV_REG_UNITS,
+             f"basis_cov_reg_units must be one of {BASIS_COV_REG_UNITS}, got '{self.basis_cov_reg_units}'"),
             (self.basis_init in BASIS_INITS, f"basis_init must be one of {BASIS_INITS}, got '{self.basis_init}'"),
         ]
         for ok, msg in checks:
@@ -397,11 +401,18 @@ def validation_mse(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, norm: 
 
 
 def pca_basis(phi: np.ndarray, y: np.ndarray, latent_dim: int, cov_reg: float = 0.0,
-              ridge: float = 1e-6) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+              ridge: float = 1e-6, joint_std: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The PPCA of demonstrations in a basis (numpy, float64) — the computation behind
     :func:`init_basis_pca`: per demo the ridge-regression weights W_i (rows b·d + j), b = their mean,
-    the k = ``latent_dim`` columns of A = the top-k eigenvectors of their covariance C + λI times the
-    square root of the eigenvalue, λ = ``cov_reg`` · mean(diag C).
+    the k = ``latent_dim`` columns of A = the top-k eigenvectors of their covariance C + R times the
+    square root of the eigenvalue.
+
+    The regularizer R (``basis_cov_reg_units``): with ``joint_std`` None, R = λI in the normalized
+    units of ``y``, λ = ``cov_reg`` · mean(diag C); with ``joint_std`` (d,) — the joints' normalization
+    standard deviations, rad — R is λI in rad, ProMP's regularizer (:meth:`core.promp.ProMP.fit`):
+    R = λ D⁻², D = diag(std of each row's joint), λ = ``cov_reg`` · mean(diag DCD). The two differ when
+    the joints' ranges differ: in normalized units a small-range joint gets as much extra variance as a
+    large-range one, in rad as much in absolute terms.
 
     Parameters
     ----------
@@ -414,12 +425,21 @@ def pca_basis(phi: np.ndarray, y: np.ndarray, latent_dim: int, cov_reg: float = 
     gram = phi.T @ phi
     gram = gram + ridge * np.trace(gram) / gram.shape[0] * np.eye(gram.shape[0])
     w = np.linalg.solve(gram, np.einsum("tb,ntd->nbd", phi, y))  # (D, n_b, d)
+    n_b, d = w.shape[1], w.shape[2]
     w = w.reshape(w.shape[0], -1)
     mean = w.mean(0)
-    _, sv, vt = np.linalg.svd(w - mean, full_matrices=True)  # vt: all n_b·d directions, data span first
-    eig = np.zeros(vt.shape[0])
-    eig[: sv.size] = sv ** 2 / max(1, w.shape[0] - 1)
-    eig += cov_reg * eig.sum() / eig.size
+    if joint_std is None:
+        _, sv, vt = np.linalg.svd(w - mean, full_matrices=True)  # vt: all n_b·d directions, data span first
+        eig = np.zeros(vt.shape[0])
+        eig[: sv.size] = sv ** 2 / max(1, w.shape[0] - 1)
+        eig += cov_reg * eig.sum() / eig.size
+    else:
+        std = np.tile(np.asarray(joint_std, dtype=np.float64).reshape(d), n_b)  # row b·d + j → std of joint j
+        dev = w - mean
+        cov = dev.T @ dev / max(1, w.shape[0] - 1)
+        lam = cov_reg * float(np.mean(np.diag(cov) * std ** 2))
+        eig, vec = np.linalg.eigh(cov + np.diag(lam / std ** 2))
+        eig, vt = np.clip(eig[::-1], 0.0, None), vec[:, ::-1].T  # largest first
     r = min(latent_dim, vt.shape[0])
     scale = np.zeros(latent_dim)
     scale[:r] = np.sqrt(eig[:r])
@@ -429,16 +449,18 @@ def pca_basis(phi: np.ndarray, y: np.ndarray, latent_dim: int, cov_reg: float = 
 
 
 @torch.no_grad()
-def init_basis_pca(net: DeepProMPNet, data: TensorData, cov_reg: float = 0.0, ridge: float = 1e-6) -> np.ndarray:
+def init_basis_pca(net: DeepProMPNet, data: TensorData, cov_reg: float = 0.0, ridge: float = 1e-6,
+                   joint_std: np.ndarray | None = None) -> np.ndarray:
     """Initialize the decoder's linear part Φ(x)(b + A z) as the PPCA of the training demos
     (``basis_init: pca``): per demo the ridge-regression weights W_i of the basis (normalized units),
     b = their mean, the columns of A = the top-k eigenvectors of their covariance C + λI scaled by
     the square root of the eigenvalue, so z ~ N(0, I) reproduces C + λI in those k directions.
     λ = ``cov_reg`` · mean(diag C) (ProMP's regularizer, :meth:`core.promp.ProMP.fit`, uses 0.05):
     it gives the k − rank(C) directions beyond the demos' span a small variance instead of none.
-    With λ = 0 those columns stay 0. Returns the standard deviations of the k columns."""
+    With λ = 0 those columns stay 0. ``joint_std`` (the normalization's, rad): λI in rad instead
+    (``basis_cov_reg_units: raw``, :func:`pca_basis`). Returns the standard deviations of the k columns."""
     phi = net.basis_functions(data.x.double()).numpy()  # (T, n_b)
-    mean, a, scale = pca_basis(phi, data.y.double().numpy(), net.cfg.latent_dim, cov_reg, ridge)
+    mean, a, scale = pca_basis(phi, data.y.double().numpy(), net.cfg.latent_dim, cov_reg, ridge, joint_std)
     net.basis.bias.copy_(torch.as_tensor(mean, dtype=torch.float32))
     net.basis.weight.copy_(torch.as_tensor(a, dtype=torch.float32))
     return scale
@@ -467,9 +489,11 @@ def linear_map_condition(phi_all: np.ndarray, mean: np.ndarray, a: np.ndarray, s
 
 def cv_basis_hyperparameters(ds: DemoDataset, n_points: int, n_basis: int, basis_width: float = 1.0,
                              latent_dims=(64,), cov_regs=(0.05,), noise_stds=(1e-3,), n_via: int = 5,
-                             folds: int = 0, draws: int = 4, seed: int = 0) -> dict:
-    """Choose the linear part's latent size, ``basis_cov_reg`` λ and the via-point noise (rad, one value
-    for all joints) of MAP conditioning by K-fold cross-validation on the demonstrations ``ds`` alone.
+                             folds: int = 0, draws: int = 4, seed: int = 0,
+                             cov_reg_units: Sequence[str] = ("normalized",)) -> dict:
+    """Choose the linear part's latent size, ``basis_cov_reg`` λ, the units of λ
+    (``basis_cov_reg_units``, :func:`pca_basis`) and the via-point noise (rad, one value for all
+    joints) of MAP conditioning by K-fold cross-validation on the demonstrations ``ds`` alone.
 
     Per fold: the normalization (:func:`fit_normalization`) and the PPCA (:func:`pca_basis`) are fitted
     to the other demos, and each held-out demo is conditioned on ``draws`` sets of ``n_via`` random
@@ -477,7 +501,8 @@ def cv_basis_hyperparameters(ds: DemoDataset, n_points: int, n_basis: int, basis
     prior); the score is the mean held-out MSE (rad²) over all 100 phases. ``folds`` 0 = leave-one-out.
     Deterministic in ``seed``.
 
-    Returns {"latent_dim", "basis_cov_reg", "noise_std", "cv_mse", "table": [[k, λ, s, mse], ...]}.
+    Returns {"latent_dim", "basis_cov_reg", "basis_cov_reg_units", "noise_std", "cv_mse",
+    "table": [[k, λ, s, mse, units], ...]}.
     """
     demos = ds.demos
     n = len(demos)
@@ -493,24 +518,33 @@ def cv_basis_hyperparameters(ds: DemoDataset, n_points: int, n_basis: int, basis
     y_all = np.stack([d.resampled(n_points) for d in demos])  # (n, T, d) rad
     sels = [[np.sort(np.random.default_rng([seed, i, r]).choice(n_points, int(n_via), replace=False))
              for r in range(draws)] for i in range(n)]
-    grid = [(int(k), float(c), float(s)) for k in latent_dims for c in cov_regs for s in noise_stds]
+    bad = [u for u in cov_reg_units if u not in BASIS_COV_REG_UNITS]
+    if bad or not cov_reg_units:
+        raise ValueError(f"cov_reg_units must be a non-empty selection of {BASIS_COV_REG_UNITS}, "
+                         f"got {tuple(cov_reg_units)}")
+    grid = [(int(k), float(c), float(s), str(u)) for k in latent_dims for c in cov_regs for s in noise_stds
+            for u in dict.fromkeys(cov_reg_units)]
     err = {g: [] for g in grid}
     for f in range(folds):
         tr = np.flatnonzero(fold_of != f)
         te = np.flatnonzero(fold_of == f)
         norm = fit_normalization(DemoDataset(tuple(demos[i] for i in tr), ds.source), n_points)
         yn = (y_all - norm.y_mean) / norm.y_std
-        fits = {(k, c): pca_basis(phi, yn[tr], k, c) for k in {g[0] for g in grid} for c in {g[1] for g in grid}}
-        for (k, c, s) in grid:
-            mean, a, _ = fits[(k, c)]
+        std = np.asarray(norm.y_std, dtype=np.float64)
+        fits = {(k, c, u): pca_basis(phi, yn[tr], k, c, joint_std=std if u == "raw" else None)
+                for (k, c, _, u) in grid}
+        for g in grid:
+            k, c, s, u = g
+            mean, a, _ = fits[(k, c, u)]
             noise = s / np.asarray(norm.y_std, dtype=np.float64)
             for i in te:
                 for sel in sels[i]:
                     pred = linear_map_condition(phi, mean, a, sel, yn[i, sel], noise) * norm.y_std + norm.y_mean
-                    err[(k, c, s)].append(float(((pred - y_all[i]) ** 2).mean()))
-    table = [[k, c, s, float(np.mean(err[(k, c, s)]))] for (k, c, s) in grid]
+                    err[g].append(float(((pred - y_all[i]) ** 2).mean()))
+    table = [[k, c, s, float(np.mean(err[(k, c, s, u)])), u] for (k, c, s, u) in grid]
     best = min(table, key=lambda r: r[3])
-    return {"latent_dim": best[0], "basis_cov_reg": best[1], "noise_std": best[2], "cv_mse": best[3],
+    return {"latent_dim": best[0], "basis_cov_reg": best[1], "basis_cov_reg_units": best[4], "noise_std": best[2],
+            "cv_mse": best[3],
             "folds": folds, "draws": draws, "n_demos": n, "table": table}
 
 
@@ -538,7 +572,8 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
                        residual_scale=cfg.residual_scale, variance_head=cfg.variance_head)
     net = DeepProMPNet(mcfg)
     if cfg.decoder_basis and cfg.basis_init == "pca":
-        init_basis_pca(net, data, cfg.basis_cov_reg)
+        init_basis_pca(net, data, cfg.basis_cov_reg,
+                       joint_std=np.asarray(norm.y_std) if cfg.basis_cov_reg_units == "raw" else None)
     if cfg.decoder_basis:  # the linear part learns at lr · basis_lr_scale (0: kept as initialized)
         rest = [p for n, p in net.named_parameters() if not n.startswith("basis.")]
         groups = [{"params": rest}]
