@@ -395,7 +395,8 @@ def residual_cv_errors(train_ds: DemoDataset, cfg: TrainConfig, folds: int, n_vi
     through ``draws`` sets of ``n_via`` via-points with the trained residual and with it off.
 
     The demos that judge the residual are then never those that chose its checkpoint (on the final
-    model's validation demos the residual measured 1.5–4 % better and on the test demos 3–5 % worse).
+    model's 3 validation demos the residual measured 0.2–6 % better on every seed, on the test demos it
+    was worse on 5 of 6 seeds, by up to 9 %: EXPERIMENTS.md section 4).
     Returns [with residual, without], each (draws, n_demos) MSEs in rad² (:func:`keep_residual`'s input)."""
     n = len(train_ds)
     if not 2 <= folds <= n // 2:
