@@ -14,6 +14,9 @@ Metrics (last line: space-separated name=value pairs):
   'object' context, preview 100 points) measured by the client process, which calls every 40 ms
   (25 calls/s) while the stream runs: from just before sending to the response taken (the client
   waits on an rcl wait set of its own, see role_client);
+* ``--service list_primitives``: the client calls ListPrimitives instead (a handler that does next to
+  nothing): ``srv_*`` is then the transport's share of a round trip under the same load (``srv_service``
+  says which was called);
 * ``srv_handler_p50_ms``, ``srv_handler_p99_ms`` -- time inside the server's Condition callback
   (its log): the computation, without transport and executor dispatch;
 * ``stream_hz`` -- joint_command messages received per second by the subscriber during one long
@@ -221,22 +224,24 @@ def _condition_request(rng, home):
 CALL_PERIOD = 0.04  # s between the starts of two Condition calls (25 calls/s, a busy planner)
 
 
-def role_client(out: str, gate: str, seconds: float, min_calls: int) -> None:
-    """From the file <gate>.go on, call Condition every CALL_PERIOD s (back to back when a call
-    takes longer) for ``seconds`` and at least ``min_calls`` calls; record round trips.
+def role_client(out: str, gate: str, seconds: float, min_calls: int, service: str = "condition") -> None:
+    """From the file <gate>.go on, call Condition (``service`` "list_primitives": ListPrimitives, whose
+    handler does next to nothing — the transport's share under the same load) every CALL_PERIOD s (back
+    to back when a call takes longer) for ``seconds`` and at least ``min_calls`` calls; record round trips.
 
     Round trip: from just before the request is sent to the moment its response has been taken in
     this process. The client waits on its own rcl wait set (what an rclpy executor does inside, without
     the executor's per-wake bookkeeping, ~0.3-1 ms of Python on a loaded machine) and sleeps between
     calls.
     """
-    from deepprompt_msgs.srv import Condition
+    from deepprompt_msgs.srv import Condition, ListPrimitives
     from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 
     from deepprompt_ros.core.robots import load_robot
 
     rclpy, node, ex = _role_node("bench_condition_client")
-    cli = node.create_client(Condition, f"{SERVER}/condition")
+    srv_type = ListPrimitives if service == "list_primitives" else Condition
+    cli = node.create_client(srv_type, f"{SERVER}/{service}")
     cli.wait_for_service(timeout_sec=60)
     ex.remove_node(node)  # from here on the client's wait set below is the only waiter
     home = load_robot("gen3_lite").home
@@ -251,10 +256,10 @@ def role_client(out: str, gate: str, seconds: float, min_calls: int) -> None:
                 wait_set.clear_entities()
                 wait_set.add_client(cli.handle)
                 wait_set.wait(int(0.1 * 1e9))
-                header, response = cli.handle.take_response(Condition.Response)
+                header, response = cli.handle.take_response(srv_type.Response)
             if header is not None and header.request_id.sequence_number == seq:
                 return response
-        raise TimeoutError(f"no Condition response within {timeout} s")
+        raise TimeoutError(f"no {service} response within {timeout} s")
 
     pathlib.Path(gate + ".ready").write_text("ready")
     _wait_file(pathlib.Path(gate + ".go"))
@@ -263,7 +268,7 @@ def role_client(out: str, gate: str, seconds: float, min_calls: int) -> None:
     end = time.monotonic() + seconds
     next_call = time.monotonic()
     while time.monotonic() < end or len(rtt) < min_calls:
-        req = _condition_request(rng, home)
+        req = _condition_request(rng, home) if srv_type is Condition else ListPrimitives.Request()
         time.sleep(max(0.0, next_call - time.monotonic()))
         next_call += CALL_PERIOD
         t0 = time.perf_counter()
@@ -400,6 +405,9 @@ def main(argv=None) -> int:
                     help="SCHED_FIFO priority of the stream subscriber processes, as a real-time consumer of the "
                     "stream runs (default 50, the server's realtime_priority default; 0 = normal scheduling; "
                     "refused without CAP_SYS_NICE -> normal, said in the output)")
+    ap.add_argument("--service", default="condition", choices=("condition", "list_primitives"),
+                    help="what the client process calls (default condition; list_primitives: a near-empty "
+                    "handler, i.e. the transport's share of srv_* under the same load)")
     ap.add_argument("--priority", type=int, default=0, help=argparse.SUPPRESS)
     ap.add_argument("--role", choices=("subscriber", "client"), help=argparse.SUPPRESS)
     ap.add_argument("--out", help=argparse.SUPPRESS)
@@ -412,7 +420,7 @@ def main(argv=None) -> int:
         role_subscriber(args.out, args.gate, args.states, args.priority)
         return 0
     if args.role == "client":
-        role_client(args.out, args.gate, args.seconds, args.calls)
+        role_client(args.out, args.gate, args.seconds, args.calls, args.service)
         return 0
 
     from deepprompt_ros.core.robots import load_robot
@@ -458,7 +466,8 @@ def main(argv=None) -> int:
         # quick: no random executions; the limits are checked on the phase-1 stream (+ joint states)
         prio = ["--priority", str(args.subscriber_priority)]
         sub = start_role("subscriber", tmp / "stream.npz", g_sub, (["--states"] if args.quick else []) + prio)
-        cli = start_role("client", tmp / "client.npz", g_cli, ["--seconds", str(stream_s), "--calls", str(calls)])
+        cli = start_role("client", tmp / "client.npz", g_cli, ["--seconds", str(stream_s), "--calls", str(calls),
+                                                               "--service", args.service])
         sub2 = None if args.quick else start_role("subscriber", tmp / "limits.npz", g_sub2, ["--states"] + prio)
         orch = Orchestrator(env)
         end = time.monotonic() + 60
@@ -504,13 +513,14 @@ def main(argv=None) -> int:
             metrics.update(server_period_p99_err_ms=float(found[-1][1]), server_missed=int(found[-1][2]))
         # time inside the server's Condition callback (the rest of a round trip: transport, executors)
         found = re.findall(r"condition handled in p50 ([\d.]+) ms, p99 ([\d.]+) ms", server.output())
-        if found:
+        if found and args.service == "condition":  # (list_primitives: only the orchestrator's one call)
             metrics.update(srv_handler_p50_ms=float(found[-1][0]), srv_handler_p99_ms=float(found[-1][1]))
         found = re.findall(r"(\d+) garbage collections .*?, ([\d.]+) ms in total, longest ([\d.]+) ms", server.output())
         if found:  # in the server process since its start-up objects were frozen
             metrics.update(server_gc_count=int(found[-1][0]), server_gc_max_ms=float(found[-1][2]))
         rtt = client["rtt"] * 1e3
-        metrics.update(srv_p50_ms=float(np.percentile(rtt, 50)), srv_p99_ms=float(np.percentile(rtt, 99)),
+        metrics.update(srv_service=args.service,
+                       srv_p50_ms=float(np.percentile(rtt, 50)), srv_p99_ms=float(np.percentile(rtt, 99)),
                        srv_calls=int(rtt.size), srv_failures=int(client["fails"]),
                        long_goal_code=int(res.code.value) if res is not None else -1,
                        **{f"cpu_{k}_pct": 100 * v for k, v in cpu.items()})
