@@ -17,6 +17,10 @@ Metrics (last line: space-separated name=value pairs):
 * ``--service list_primitives``: the client calls ListPrimitives instead (a handler that does next to
   nothing): ``srv_*`` is then the transport's share of a round trip under the same load (``srv_service``
   says which was called);
+* ``--reference-loop``: ``ref_loop_period_p99_err_ms``, ``ref_loop_missed`` (of ``ref_loop_intervals``)
+  -- the same two figures for a bare 1 kHz Python loop (no ROS, no work, paced like the server's control
+  thread, SCHED_FIFO at ``--subscriber-priority``) run in its own process during the stream: the
+  machine's own floor for a real-time loop under this load;
 * ``srv_handler_p50_ms``, ``srv_handler_p99_ms`` -- time inside the server's Condition callback
   (its log): the computation, without transport and executor dispatch;
 * ``stream_hz`` -- joint_command messages received per second by the subscriber during one long
@@ -348,6 +352,40 @@ def cpu_seconds(pid: int | str = "self") -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def role_reference_loop(out: str, gate: str, priority: int, dt: float) -> None:
+    """A bare 1/dt Hz loop (no ROS, no work) paced like the server's control thread — absolute
+    perf_counter deadlines, ``time.sleep`` until each — at SCHED_FIFO ``priority``, between the files
+    <gate>.go and <gate>.stop: what this machine's scheduler allows a real-time Python loop under the
+    benchmark's load (its wake instants are recorded)."""
+    from deepprompt_ros.ros.stream_loop import set_fifo_priority
+
+    why = set_fifo_priority(priority) if priority > 0 else "normal scheduling asked"
+    if why:
+        print(f"reference loop: {why}", flush=True)
+    pathlib.Path(gate + ".ready").write_text("ready")
+    _wait_file(pathlib.Path(gate + ".go"))
+    stop = pathlib.Path(gate + ".stop")
+    wake = []
+    t = time.perf_counter()
+    while True:
+        for _ in range(1000):  # the stop file is checked once a second
+            t += dt
+            remaining = t - time.perf_counter()
+            if remaining > 0:
+                time.sleep(remaining)
+            wake.append(time.perf_counter())
+        if stop.exists():
+            break
+    _save(out, t=np.array(wake), fifo=np.array(0 if why else priority))
+
+
+def reference_loop_metrics(data, dt) -> dict:
+    iv = np.diff(data["t"])
+    return dict(ref_loop_period_p99_err_ms=float(np.percentile(np.abs(iv - dt), 99) * 1e3),
+                ref_loop_missed=int((iv > 1.5 * dt).sum()), ref_loop_intervals=int(iv.size),
+                ref_loop_interval_max_ms=float(iv.max() * 1e3), ref_loop_fifo_priority=int(data["fifo"]))
+
+
 def stream_metrics(data, dt):
     t, stamp = data["t"] - data["t"][:1], data["stamp"]
     if t.size < 3:
@@ -408,8 +446,12 @@ def main(argv=None) -> int:
     ap.add_argument("--service", default="condition", choices=("condition", "list_primitives"),
                     help="what the client process calls (default condition; list_primitives: a near-empty "
                     "handler, i.e. the transport's share of srv_* under the same load)")
+    ap.add_argument("--reference-loop", action="store_true",
+                    help="also run, during the stream, a bare 1 kHz Python loop (no ROS, no work) at the "
+                    "subscribers' SCHED_FIFO priority in a process of its own: ref_loop_* say what the machine's "
+                    "scheduler allows a real-time loop under the same load")
     ap.add_argument("--priority", type=int, default=0, help=argparse.SUPPRESS)
-    ap.add_argument("--role", choices=("subscriber", "client"), help=argparse.SUPPRESS)
+    ap.add_argument("--role", choices=("subscriber", "client", "reference_loop"), help=argparse.SUPPRESS)
     ap.add_argument("--out", help=argparse.SUPPRESS)
     ap.add_argument("--seconds", type=float, default=0.0, help=argparse.SUPPRESS)
     ap.add_argument("--calls", type=int, default=0, help=argparse.SUPPRESS)
@@ -418,6 +460,9 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.role == "subscriber":
         role_subscriber(args.out, args.gate, args.states, args.priority)
+        return 0
+    if args.role == "reference_loop":
+        role_reference_loop(args.out, args.gate, args.priority, 1e-3)
         return 0
     if args.role == "client":
         role_client(args.out, args.gate, args.seconds, args.calls, args.service)
@@ -469,6 +514,8 @@ def main(argv=None) -> int:
         cli = start_role("client", tmp / "client.npz", g_cli, ["--seconds", str(stream_s), "--calls", str(calls),
                                                                "--service", args.service])
         sub2 = None if args.quick else start_role("subscriber", tmp / "limits.npz", g_sub2, ["--states"] + prio)
+        g_ref = tmp / "reference"
+        ref = start_role("reference_loop", tmp / "reference.npz", g_ref, prio) if args.reference_loop else None
         orch = Orchestrator(env)
         end = time.monotonic() + 60
         while "receiving joint_states" not in server.output():
@@ -477,12 +524,14 @@ def main(argv=None) -> int:
             time.sleep(0.1)
 
         # ---- phase 1: one long execution; subscriber + Condition client in their own processes
-        for g in (g_sub, g_cli) + (() if sub2 is None else (g_sub2,)):
+        for g in (g_sub, g_cli) + (() if sub2 is None else (g_sub2,)) + (() if ref is None else (g_ref,)):
             wait_ready(g)
         rng = np.random.default_rng(0)
         r = orch.condition(_condition_request(rng, spec.home))
         assert r.success, r.message
         go(g_sub)
+        if ref is not None:
+            go(g_ref)
         gh, res_fut = orch.send(r.handle, stream_s + 1.5)
         orch.c.spin_for(0.5)
         roles = {"sim_bridge": procs[0], "server": server, "subscriber": sub, "client": cli}
@@ -503,6 +552,9 @@ def main(argv=None) -> int:
         go(g_sub, "stop")
         stream = _load(tmp / "stream.npz", sub, 60)
         metrics = stream_metrics(stream, dt)
+        if ref is not None:
+            go(g_ref, "stop")
+            metrics.update(reference_loop_metrics(_load(tmp / "reference.npz", ref, 60), dt))
         # the subscriber's scheduling as it ran (a refused SCHED_FIFO leaves it at normal priority)
         metrics["subscriber_fifo_priority"] = (0 if args.subscriber_priority <= 0 or "refused" in sub.output()
                                                else args.subscriber_priority)

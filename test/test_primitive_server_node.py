@@ -425,11 +425,14 @@ def test_benchmark_quick_mode_runs_and_reports_every_metric(setup):
     assert float(table.get("server_gc_max_ms", 0.0)) < 50.0
     assert table["srv_service"] == "condition"
     # --service list_primitives: the same load, round trips of a near-empty handler (the transport's share)
-    out = subprocess.run([sys.executable, str(bench), "--quick", "--service", "list_primitives", "--model",
-                          str(setup["tmp"] / "reach.safetensors")],
+    out = subprocess.run([sys.executable, str(bench), "--quick", "--service", "list_primitives", "--reference-loop",
+                          "--model", str(setup["tmp"] / "reach.safetensors")],
                          capture_output=True, text=True, timeout=240, start_new_session=True)
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
     table = {row[0]: row[1] for row in map(str.split, out.stdout.splitlines()) if len(row) == 2}
     assert table["srv_service"] == "list_primitives" and int(table["srv_calls"]) >= 20
     assert int(table["srv_failures"]) == 0 and float(table["srv_p50_ms"]) > 0
     assert "srv_handler_p50_ms" not in table  # the server's Condition figure would describe other calls
+    # --reference-loop: a bare 1 kHz loop ran beside the stream (about 2 s of intervals)
+    assert int(table["ref_loop_intervals"]) >= 1500 and float(table["ref_loop_period_p99_err_ms"]) > 0
+    assert int(table["ref_loop_fifo_priority"]) in (0, 50)  # 0: SCHED_FIFO refused (no CAP_SYS_NICE)
