@@ -1,4 +1,5 @@
-"""Core benchmarks: conditioning vs closed-form ProMP, refinement, training throughput.
+"""Core benchmarks: conditioning vs closed-form ProMP, the server's Condition handler, refinement,
+training throughput.
 
 Usage: python bench/bench_core.py [--quick]
 Prints a table, then as the LAST line space-separated name=value pairs.
@@ -37,6 +38,47 @@ def timed(fn, repeats: int) -> list[float]:
     return out
 
 
+def server_handler(n_joints: int, repeats: int, gap_repeats: int, gap: float = 0.04) -> tuple[float, float, float]:
+    """Median ms of ``PrimitiveServerCore.condition`` on the shipped Gen3 lite model (as primitive 'reach',
+    bench_ros's request: 5 random via-points near home + the 'object' context, 100-point preview): back to
+    back, then with ``gap`` s of sleep before each call (wall and thread CPU time)."""
+    from deepprompt_ros.core import server_logic as sl
+    from deepprompt_ros.core.robots import load_robot
+
+    spec = load_robot("gen3_lite")
+    cfg = sl.ServerConfig()
+    entry = sl.PrimitiveEntry("reach", str(ROOT / "models" / "gen3_lite_reach.safetensors"))
+    core = sl.PrimitiveServerCore({"reach": sl.load_primitive(entry, spec.joint_names, pathlib.Path)}, cfg,
+                                  sl.robot_limits(spec, cfg))
+    rng = np.random.default_rng(1)
+    home = np.asarray(spec.home)
+
+    def request():
+        x = np.sort(rng.uniform(0, 1, 5))
+        y = home + rng.normal(0, 0.05, (5, n_joints))
+        vps = [sl.ViaPointIn(float(a), tuple(b), (), False, 1.0) for a, b in zip(x, y)]
+        ctx = [sl.ContextIn("object", tuple(rng.uniform(-0.3, 0.3, 3)), (), False, 1.0)]
+        return sl.ConditionRequest("reach", vps, ctx, False, 0, 0.0, 100)
+
+    reqs = [request() for _ in range(repeats + 20)]
+    for r in reqs[:20]:
+        assert core.condition(r).code == sl.Code.SUCCESS
+    warm = []
+    for r in reqs[20:]:
+        t0 = time.perf_counter()
+        core.condition(r)
+        warm.append((time.perf_counter() - t0) * 1e3)
+    wall, cpu = [], []
+    for _ in range(gap_repeats):
+        r = request()
+        time.sleep(gap)
+        t0, c0 = time.perf_counter(), time.thread_time()
+        core.condition(r)
+        wall.append((time.perf_counter() - t0) * 1e3)
+        cpu.append((time.thread_time() - c0) * 1e3)
+    return statistics.median(warm), statistics.median(wall), statistics.median(cpu)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="few repetitions (smoke run)")
@@ -69,6 +111,12 @@ def main(argv=None) -> int:
         t_pro += timed(pro, 50)
     condition_ms = statistics.median(t_deep)
     promp_ms = statistics.median(t_pro)
+
+    # the primitive_server's Condition handler without ROS (core.server_logic: request checks, aggregation,
+    # handle, preview of mean and std) for bench_ros's request: back to back, and with 40 ms between calls
+    # (bench_ros's client rate) — wall and CPU time of this thread, caches cold again at every call
+    handler_ms, handler_gap_ms, handler_gap_cpu_ms = server_handler(prim.n_joints, 50 if args.quick else 1000,
+                                                                    20 if args.quick else 250)
 
     # refinement: reachable via-point sets (decoded from random latents) and held-out demo points
     rng = np.random.default_rng(0)
@@ -106,6 +154,9 @@ def main(argv=None) -> int:
         ("condition_ms", condition_ms, "5 via-points + object context, decode 100-step mean (median)"),
         ("promp_condition_ms", promp_ms, "closed-form ProMP, same 5 via-points, 100-step mean (median)"),
         ("condition_ratio", condition_ms / promp_ms, "target <= 1"),
+        ("handler_ms", handler_ms, "server Condition handler (5 via-points + context, preview 100), back to back"),
+        ("handler_gap_ms", handler_gap_ms, "the same with 40 ms between calls (bench_ros's rate), wall (median)"),
+        ("handler_gap_cpu_ms", handler_gap_cpu_ms, "  its CPU time (thread_time, median)"),
         ("refine_max_err_rad", max(errs) if errs else float("nan"), f"max over {len(errs)} reachable sets, target <= 1e-6"),
         ("refine_steps", max(steps) if steps else -1, "max iterations, target <= 200"),
         ("refine_ms", statistics.median(times), "median wall time, target <= 50"),
