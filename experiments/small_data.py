@@ -79,7 +79,9 @@ class SmallDataResult:
     map_noise_std: list = dataclasses.field(default_factory=list)  # the MAP via-point noise used (rad), per seed
     cv: dict = dataclasses.field(default_factory=dict)  # cross-validation on the training demos (cv_grid), or {}
     residual_used: list = dataclasses.field(default_factory=list)  # residual scale of the deepprompt_map row, per seed
-    residual_val: list = dataclasses.field(default_factory=list)  # validation MAP MSE [trained residual, off], per seed
+    # MAP MSE [trained residual, off] on the demos that judged the residual (validation demos, or the held-out
+    # demos of the residual's cross-validation), per seed
+    residual_val: list = dataclasses.field(default_factory=list)
     residual_val_diff_se: list = dataclasses.field(default_factory=list)  # [mean per-demo difference, its SE], per seed
     residual_folds: int = 0  # residual judged by K-fold CV on the training demos (0: on the validation demos)
     units: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)  # UnitReport; not in to_json
@@ -266,7 +268,8 @@ def small_data(train_config: TrainConfig, data: tuple[DemoDataset, DemoDataset] 
         train_config = dataclasses.replace(train_config, latent_dim=cv["latent_dim"], basis_cov_reg=cv["basis_cov_reg"],
                                            basis_cov_reg_units=cv.get("basis_cov_reg_units", "normalized"))
         log(f"  cross-validation ({cv['folds']} folds, {cv['wall_time_s']:.1f} s): latent {cv['latent_dim']}, "
-            f"basis_cov_reg {cv['basis_cov_reg']} ({cv['basis_cov_reg_units']} units), MAP noise {cv['noise_std']} rad (CV MSE {cv['cv_mse']:.3e})"
+            f"basis_cov_reg {cv['basis_cov_reg']} ({train_config.basis_cov_reg_units} units), "
+            f"MAP noise {cv['noise_std']} rad (CV MSE {cv['cv_mse']:.3e})"
             + ("  (reused)" if report.reused else ""))
     promp = ProMPModel().fit(train_ds, train_config)
     p_via = reconstruction_mse(promp, test_ds, "via_point", n_via=n_via, n_points=n_points)
