@@ -111,8 +111,9 @@ def primitives_file(tmp: pathlib.Path, model: str | None = None, steps: int = 30
 def _role_node(name):
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
 
-    rclpy.init()
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)  # SIGINT (the orchestrator's stop) ends it
     node = rclpy.create_node(name)
     ex = SingleThreadedExecutor()
     ex.add_node(node)
@@ -137,8 +138,18 @@ def _load(path: pathlib.Path, proc, timeout: float) -> dict:
     return dict(np.load(path))
 
 
+_PARENT = os.getppid()  # a role process's orchestrator
+
+
+def _check_parent() -> None:
+    """A role process ends when its orchestrator is gone (killed before it could stop its roles)."""
+    if os.getppid() != _PARENT:
+        raise SystemExit("bench_ros: the orchestrator is gone; stopping")
+
+
 def _wait_file(path: pathlib.Path, ex=None) -> None:
     while not path.exists():
+        _check_parent()
         if ex is not None:
             ex.spin_once(timeout_sec=0.02)
         else:
@@ -174,7 +185,9 @@ def role_subscriber(out: str, gate: str, states: bool, priority: int = 0) -> Non
     from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import JointState
 
-    rclpy.init()
+    from rclpy.signals import SignalHandlerOptions
+
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)  # SIGINT (the orchestrator's stop) ends it
     node = rclpy.create_node("bench_stream_subscriber")
     qos = QoSProfile(depth=1000)
     subs = {"cmd": node.create_subscription(JointState, "joint_command", lambda m: None, qos, raw=True)}
@@ -192,9 +205,11 @@ def role_subscriber(out: str, gate: str, states: bool, priority: int = 0) -> Non
     pathlib.Path(gate + ".ready").write_text("ready")
     go, stop = pathlib.Path(gate + ".go"), pathlib.Path(gate + ".stop")
     while not go.exists():
+        _check_parent()
         take(False)
         time.sleep(0.02)
     while not stop.exists():
+        _check_parent()
         take(True)
         time.sleep(SUB_POLL)
     take(True)
@@ -376,6 +391,7 @@ def role_reference_loop(out: str, gate: str, priority: int, dt: float) -> None:
             wake.append(time.perf_counter())
         if stop.exists():
             break
+        _check_parent()
     _save(out, t=np.array(wake), fifo=np.array(0 if why else priority))
 
 
@@ -458,6 +474,8 @@ def main(argv=None) -> int:
     ap.add_argument("--gate", help=argparse.SUPPRESS)
     ap.add_argument("--states", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.role:  # SIGINT (the orchestrator's stop) ends a role even if it was started with SIGINT ignored
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     if args.role == "subscriber":
         role_subscriber(args.out, args.gate, args.states, args.priority)
         return 0
@@ -471,6 +489,13 @@ def main(argv=None) -> int:
     from deepprompt_ros.core.robots import load_robot
     from deepprompt_ros.core.server_logic import ServerConfig, robot_limits
     from deepprompt_ros.ros.testing import NodeProcess, isolated_ros_env
+
+    # SIGTERM (kill, timeout) ends the run like an error: the finally below stops every process started
+    # (set again once rclpy, which installs a handler of its own, is initialized by the Orchestrator)
+    def on_sigterm(signum, frame):
+        sys.exit(128 + signum)
+
+    signal.signal(signal.SIGTERM, on_sigterm)
 
     load_before = os.getloadavg()[0]  # other work on the machine (this benchmark adds ~1 when it runs)
     stream_s, calls, n_exec = (2.0, 20, 0) if args.quick else (40.0, 1000, 30)
@@ -517,6 +542,7 @@ def main(argv=None) -> int:
         g_ref = tmp / "reference"
         ref = start_role("reference_loop", tmp / "reference.npz", g_ref, prio) if args.reference_loop else None
         orch = Orchestrator(env)
+        signal.signal(signal.SIGTERM, on_sigterm)
         end = time.monotonic() + 60
         while "receiving joint_states" not in server.output():
             if time.monotonic() > end:

@@ -436,3 +436,51 @@ def test_benchmark_quick_mode_runs_and_reports_every_metric(setup):
     # --reference-loop: a bare 1 kHz loop ran beside the stream (about 2 s of intervals)
     assert int(table["ref_loop_intervals"]) >= 1500 and float(table["ref_loop_period_p99_err_ms"]) > 0
     assert int(table["ref_loop_fifo_priority"]) in (0, 50)  # 0: SCHED_FIFO refused (no CAP_SYS_NICE)
+
+
+def _tagged_pids(tag: str) -> list[int]:
+    """Processes whose environment holds ``BENCH_TAG=<tag>`` (the benchmark and everything it started)."""
+    out = []
+    for d in pathlib.Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                if f"BENCH_TAG={tag}".encode() in (d / "environ").read_bytes().split(b"\0"):
+                    out.append(int(d.name))
+            except OSError:
+                pass
+    return out
+
+
+def test_benchmark_killed_with_sigterm_stops_every_process_it_started(setup):
+    """`kill` / `timeout` on bench_ros.py: its roles and nodes (each in a session of its own) end too."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    import uuid
+
+    bench = pathlib.Path(__file__).resolve().parent.parent / "bench" / "bench_ros.py"
+    tag = uuid.uuid4().hex
+    env = {**os.environ, "BENCH_TAG": tag}
+    proc = subprocess.Popen([sys.executable, str(bench), "--model", str(setup["tmp"] / "reach.safetensors")],
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        end = time.monotonic() + 90
+        while len(_tagged_pids(tag)) < 6 and time.monotonic() < end:  # orchestrator, 2 nodes, 3 roles
+            time.sleep(0.2)
+        assert len(_tagged_pids(tag)) >= 6, "the benchmark did not start its processes"
+        time.sleep(2.0)
+        proc.send_signal(signal.SIGTERM)
+        end = time.monotonic() + 20
+        while _tagged_pids(tag) and time.monotonic() < end:
+            time.sleep(0.2)
+        left = _tagged_pids(tag)
+        assert not left, f"processes left after SIGTERM: {left}"
+        assert proc.wait(5) == 128 + signal.SIGTERM
+    finally:
+        for pid in _tagged_pids(tag):
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
