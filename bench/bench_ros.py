@@ -491,11 +491,8 @@ def main(argv=None) -> int:
     from deepprompt_ros.ros.testing import NodeProcess, isolated_ros_env
 
     # SIGTERM (kill, timeout) ends the run like an error: the finally below stops every process started
-    # (set again once rclpy, which installs a handler of its own, is initialized by the Orchestrator)
-    def on_sigterm(signum, frame):
-        sys.exit(128 + signum)
-
-    signal.signal(signal.SIGTERM, on_sigterm)
+    # (rclpy, initialized later by the Orchestrator, calls this handler from its own)
+    signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
 
     load_before = os.getloadavg()[0]  # other work on the machine (this benchmark adds ~1 when it runs)
     stream_s, calls, n_exec = (2.0, 20, 0) if args.quick else (40.0, 1000, 30)
@@ -542,7 +539,6 @@ def main(argv=None) -> int:
         g_ref = tmp / "reference"
         ref = start_role("reference_loop", tmp / "reference.npz", g_ref, prio) if args.reference_loop else None
         orch = Orchestrator(env)
-        signal.signal(signal.SIGTERM, on_sigterm)
         end = time.monotonic() + 60
         while "receiving joint_states" not in server.output():
             if time.monotonic() > end:
