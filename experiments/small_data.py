@@ -42,7 +42,7 @@ import numpy as np
 
 from deepprompt_ros.core.baselines import DeepProMPModel, ProMPModel, reconstruction_mse
 from deepprompt_ros.core.dataset import DemoDataset
-from deepprompt_ros.core.train import TrainConfig, cv_basis_hyperparameters
+from deepprompt_ros.core.train import TrainConfig, cv_basis_hyperparameters, fold_assignment
 
 from . import common
 from .common import Scale
@@ -266,7 +266,7 @@ def small_data(train_config: TrainConfig, data: tuple[DemoDataset, DemoDataset] 
         unit = Unit("cv", {**unit_context(train_ds, test_ds), "cv": args}, args)
         (cv,), report = run_units([unit], cv_unit, {"train": train_ds}, cache, 1, SOURCES, log=lambda s: None)
         train_config = dataclasses.replace(train_config, latent_dim=cv["latent_dim"], basis_cov_reg=cv["basis_cov_reg"],
-                                           basis_cov_reg_units=cv.get("basis_cov_reg_units", "normalized"))
+                                           basis_cov_reg_units=cv["basis_cov_reg_units"])
         log(f"  cross-validation ({cv['folds']} folds, {cv['wall_time_s']:.1f} s): latent {cv['latent_dim']}, "
             f"basis_cov_reg {cv['basis_cov_reg']} ({train_config.basis_cov_reg_units} units), "
             f"MAP noise {cv['noise_std']} rad (CV MSE {cv['cv_mse']:.3e})"
@@ -367,16 +367,14 @@ def seed_unit(shared: dict, seed: int, cfg: TrainConfig, params: dict, n_points:
     r["factor"] = float(f)
     chosen = model
     if cfg.decoder_basis:
-        linear = DeepProMPModel()
-        linear._set(model.primitive.with_residual_scale(0.0))
+        linear = _residual_off(model)
         r["deepprompt_map_linear"] = map_mse(linear, test_ds, n_via, f, map_prior, n_points, noise_std=noise)
         if residual_select:
             folds = int(params.get("residual_folds", 0))
             if folds >= 2:
                 val = residual_cv_errors(train_ds, cfg, folds, n_via, f, map_prior, n_points, noise, val_draws)
             else:
-                val = [np.stack([map_errors(m, val_ds, n_via, f, map_prior, n_points, seed=12345 + i, noise_std=noise)
-                                 for i in range(val_draws)]) for m in (model, linear)]
+                val = [_draw_errors(m, val_ds, n_via, f, map_prior, n_points, noise, val_draws) for m in (model, linear)]
             keep, diff, se = keep_residual(*val)
             r["residual_val"] = [float(v.mean()) for v in val]
             r["residual_val_diff_se"] = [diff, se]
@@ -404,20 +402,30 @@ def residual_cv_errors(train_ds: DemoDataset, cfg: TrainConfig, folds: int, n_vi
     n = len(train_ds)
     if not 2 <= folds <= n // 2:
         raise ValueError(f"residual cross-validation needs 2 <= folds <= {n // 2} for {n} demonstrations, got {folds}")
-    fold_of = np.empty(n, dtype=int)
-    fold_of[np.random.default_rng(cfg.seed).permutation(n)] = np.arange(n) % folds
+    fold_of = fold_assignment(n, folds, cfg.seed)
     out = [[], []]
     for k in range(folds):
         fit_on = DemoDataset(tuple(d for d, f in zip(train_ds.demos, fold_of) if f != k), train_ds.source + f":fold{k}")
         held = DemoDataset(tuple(d for d, f in zip(train_ds.demos, fold_of) if f == k),
                            train_ds.source + f":heldout{k}")
         model = DeepProMPModel().fit(fit_on, cfg)
-        linear = DeepProMPModel()
-        linear._set(model.primitive.with_residual_scale(0.0))
-        for j, m in enumerate((model, linear)):
-            out[j].append(np.stack([map_errors(m, held, n_via, noise_factor, prior, n_points, seed=12345 + i,
-                                               noise_std=noise_std) for i in range(draws)]))
+        for j, m in enumerate((model, _residual_off(model))):
+            out[j].append(_draw_errors(m, held, n_via, noise_factor, prior, n_points, noise_std, draws))
     return [np.concatenate(o, axis=1) for o in out]
+
+
+def _residual_off(model: DeepProMPModel) -> DeepProMPModel:
+    """``model`` with its decoder's MLP residual switched off (scale 0): the linear part alone."""
+    linear = DeepProMPModel()
+    linear._set(model.primitive.with_residual_scale(0.0))
+    return linear
+
+
+def _draw_errors(model: DeepProMPModel, demos: DemoDataset, n_via: int, noise_factor: float, prior: str,
+                 n_points: int, noise_std: float | None, draws: int) -> np.ndarray:
+    """(draws, n_demos) :func:`map_errors` of ``demos``, draw i with via-point seed 12345 + i."""
+    return np.stack([map_errors(model, demos, n_via, noise_factor, prior, n_points, seed=12345 + i,
+                                noise_std=noise_std) for i in range(draws)])
 
 
 def _start_only(model, test: DemoDataset, n_points: int) -> float:

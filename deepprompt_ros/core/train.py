@@ -487,6 +487,14 @@ def linear_map_condition(phi_all: np.ndarray, mean: np.ndarray, a: np.ndarray, s
     return phi_all @ (wm + wa @ z)
 
 
+def fold_assignment(n: int, folds: int, seed: int) -> np.ndarray:
+    """The fold (0 … ``folds`` − 1) of each of ``n`` items for K-fold cross-validation: a seeded
+    permutation dealt round-robin, so fold sizes differ by at most one."""
+    fold_of = np.empty(n, dtype=int)
+    fold_of[np.random.default_rng(seed).permutation(n)] = np.arange(n) % folds
+    return fold_of
+
+
 def cv_basis_hyperparameters(ds: DemoDataset, n_points: int, n_basis: int, basis_width: float = 1.0,
                              latent_dims=(64,), cov_regs=(0.05,), noise_stds=(1e-3,), n_via: int = 5,
                              folds: int = 0, draws: int = 4, seed: int = 0,
@@ -509,10 +517,7 @@ def cv_basis_hyperparameters(ds: DemoDataset, n_points: int, n_basis: int, basis
     if n < 3:
         raise ValueError(f"cross-validation needs >= 3 demonstrations, got {n}")
     folds = n if folds <= 0 else min(int(folds), n)
-    rng = np.random.default_rng(seed)
-    order = rng.permutation(n)
-    fold_of = np.empty(n, dtype=int)
-    fold_of[order] = np.arange(n) % folds
+    fold_of = fold_assignment(n, folds, seed)
     x = np.linspace(0.0, 1.0, n_points)
     phi = phase_basis(x, n_basis, basis_width, ds.phase_type == "rhythmic")
     y_all = np.stack([d.resampled(n_points) for d in demos])  # (n, T, d) rad
@@ -536,7 +541,7 @@ def cv_basis_hyperparameters(ds: DemoDataset, n_points: int, n_basis: int, basis
         for g in grid:
             k, c, s, u = g
             mean, a, _ = fits[(k, c, u)]
-            noise = s / np.asarray(norm.y_std, dtype=np.float64)
+            noise = s / std
             for i in te:
                 for sel in sels[i]:
                     pred = linear_map_condition(phi, mean, a, sel, yn[i, sel], noise) * norm.y_std + norm.y_mean
