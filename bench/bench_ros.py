@@ -108,6 +108,16 @@ def primitives_file(tmp: pathlib.Path, model: str | None = None, steps: int = 30
 # ------------------------------------------------------------------------------------------------
 # roles running in their own processes
 # ------------------------------------------------------------------------------------------------
+def _realtime(priority: int, who: str) -> str:
+    """SCHED_FIFO ``priority`` for this process (0: none asked); '' if granted, else why not (printed)."""
+    from deepprompt_ros.ros.stream_loop import set_fifo_priority
+
+    why = set_fifo_priority(priority) if priority > 0 else "normal scheduling asked"
+    if why and priority > 0:
+        print(f"{who}: {why}", flush=True)
+    return why
+
+
 def _role_node(name):
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -174,21 +184,12 @@ def role_subscriber(out: str, gate: str, states: bool, priority: int = 0) -> Non
     the DDS threads that receive (and time-stamp) the messages inherit it — as a controller process
     on a real-time setup runs.
     """
-    if priority > 0:
-        from deepprompt_ros.ros.stream_loop import set_fifo_priority
-
-        why = set_fifo_priority(priority)
-        if why:
-            print(f"subscriber: {why}", flush=True)
-    import rclpy
+    _realtime(priority, "subscriber")
     from rclpy.qos import QoSProfile
     from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import JointState
 
-    from rclpy.signals import SignalHandlerOptions
-
-    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)  # SIGINT (the orchestrator's stop) ends it
-    node = rclpy.create_node("bench_stream_subscriber")
+    rclpy, node, _ = _role_node("bench_stream_subscriber")  # its executor is never spun: messages are taken
     qos = QoSProfile(depth=1000)
     subs = {"cmd": node.create_subscription(JointState, "joint_command", lambda m: None, qos, raw=True)}
     if states:
@@ -372,11 +373,7 @@ def role_reference_loop(out: str, gate: str, priority: int, dt: float) -> None:
     perf_counter deadlines, ``time.sleep`` until each — at SCHED_FIFO ``priority``, between the files
     <gate>.go and <gate>.stop: what this machine's scheduler allows a real-time Python loop under the
     benchmark's load (its wake instants are recorded)."""
-    from deepprompt_ros.ros.stream_loop import set_fifo_priority
-
-    why = set_fifo_priority(priority) if priority > 0 else "normal scheduling asked"
-    if why:
-        print(f"reference loop: {why}", flush=True)
+    why = _realtime(priority, "reference loop")
     pathlib.Path(gate + ".ready").write_text("ready")
     _wait_file(pathlib.Path(gate + ".go"))
     stop = pathlib.Path(gate + ".stop")
@@ -395,24 +392,27 @@ def role_reference_loop(out: str, gate: str, priority: int, dt: float) -> None:
     _save(out, t=np.array(wake), fifo=np.array(0 if why else priority))
 
 
+def _interval_figures(iv: np.ndarray, dt: float) -> tuple[float, int, float]:
+    """Of intervals ``iv`` (s) meant to be ``dt``: p99 of |iv − dt| (ms), the number longer than
+    1.5 dt (missed periods), the longest (ms)."""
+    return float(np.percentile(np.abs(iv - dt), 99) * 1e3), int((iv > 1.5 * dt).sum()), float(iv.max() * 1e3)
+
+
 def reference_loop_metrics(data, dt) -> dict:
     iv = np.diff(data["t"])
-    return dict(ref_loop_period_p99_err_ms=float(np.percentile(np.abs(iv - dt), 99) * 1e3),
-                ref_loop_missed=int((iv > 1.5 * dt).sum()), ref_loop_intervals=int(iv.size),
-                ref_loop_interval_max_ms=float(iv.max() * 1e3), ref_loop_fifo_priority=int(data["fifo"]))
+    p99, missed, longest = _interval_figures(iv, dt)
+    return dict(ref_loop_period_p99_err_ms=p99, ref_loop_missed=missed, ref_loop_intervals=int(iv.size),
+                ref_loop_interval_max_ms=longest, ref_loop_fifo_priority=int(data["fifo"]))
 
 
 def stream_metrics(data, dt):
     t, stamp = data["t"] - data["t"][:1], data["stamp"]
     if t.size < 3:
         return dict(stream_hz=0.0, stream_period_p99_err_ms=float("nan"), stream_missed=-1, stream_lost=-1)
-    iv = np.diff(t)
+    p99, missed, longest = _interval_figures(np.diff(t), dt)
     steps = np.round(np.diff(stamp) / (dt * 1e9)).astype(int)
-    return dict(stream_hz=float((t.size - 1) / (t[-1] - t[0])),
-                stream_period_p99_err_ms=float(np.percentile(np.abs(iv - dt), 99) * 1e3),
-                stream_missed=int((iv > 1.5 * dt).sum()),
-                stream_lost=int(np.maximum(steps - 1, 0).sum()),
-                stream_interval_max_ms=float(iv.max() * 1e3))
+    return dict(stream_hz=float((t.size - 1) / (t[-1] - t[0])), stream_period_p99_err_ms=p99, stream_missed=missed,
+                stream_lost=int(np.maximum(steps - 1, 0).sum()), stream_interval_max_ms=longest)
 
 
 def limit_check(data, dt, limits):
