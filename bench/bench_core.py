@@ -22,11 +22,11 @@ import torch  # noqa: E402
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from deepprompt_ros.core.dataset import bimodal_sine  # noqa: E402
-from deepprompt_ros.core.primitive import DeepProMP  # noqa: E402
-from deepprompt_ros.core.promp import ProMP  # noqa: E402
-from deepprompt_ros.core.reach import reach_demos  # noqa: E402
-from deepprompt_ros.core.train import TrainConfig, train  # noqa: E402
+from deepprompt_ros.data.dataset import bimodal_sine  # noqa: E402
+from deepprompt_ros.primitive.deep_promp import DeepProMP  # noqa: E402
+from deepprompt_ros.baselines.promp import ProMP  # noqa: E402
+from deepprompt_ros.data.reach import reach_demos  # noqa: E402
+from deepprompt_ros.training.loop import TrainConfig, train  # noqa: E402
 
 
 def timed(fn, repeats: int) -> list[float]:
@@ -42,8 +42,8 @@ def server_handler(n_joints: int, repeats: int, gap_repeats: int, gap: float = 0
     """Median ms of ``PrimitiveServerCore.condition`` on the shipped Gen3 lite model (as primitive 'reach',
     bench_ros's request: 5 random via-points near home + the 'object' context, 100-point preview): back to
     back, then with ``gap`` s of sleep before each call (wall and thread CPU time)."""
-    from deepprompt_ros.core import server_logic as sl
-    from deepprompt_ros.core.robots import load_robot
+    from deepprompt_ros.server import service_logic as sl
+    from deepprompt_ros.robots.spec import load_robot
 
     spec = load_robot("gen3_lite")
     cfg = sl.ServerConfig()

@@ -71,9 +71,9 @@ SERVER = "/primitive_server"
 # ------------------------------------------------------------------------------------------------
 def tiny_reach_model(path: pathlib.Path, steps: int = 300) -> pathlib.Path:
     """A small 6-joint Gen3 lite primitive with context 'object' (3), trained in seconds."""
-    from deepprompt_ros.core.dataset import Demonstration, DemoDataset
-    from deepprompt_ros.core.robots import load_robot
-    from deepprompt_ros.core.train import TrainConfig, train
+    from deepprompt_ros.data.dataset import Demonstration, DemoDataset
+    from deepprompt_ros.robots.spec import load_robot
+    from deepprompt_ros.training.loop import TrainConfig, train
 
     spec = load_robot("gen3_lite")
     rng = np.random.default_rng(0)
@@ -110,7 +110,7 @@ def primitives_file(tmp: pathlib.Path, model: str | None = None, steps: int = 30
 # ------------------------------------------------------------------------------------------------
 def _realtime(priority: int, who: str) -> str:
     """SCHED_FIFO ``priority`` for this process (0: none asked); '' if granted, else why not (printed)."""
-    from deepprompt_ros.ros.stream_loop import set_fifo_priority
+    from deepprompt_ros.execution.stream_loop import set_fifo_priority
 
     why = set_fifo_priority(priority) if priority > 0 else "normal scheduling asked"
     if why and priority > 0:
@@ -257,7 +257,7 @@ def role_client(out: str, gate: str, seconds: float, min_calls: int, service: st
     from deepprompt_msgs.srv import Condition, ListPrimitives
     from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 
-    from deepprompt_ros.core.robots import load_robot
+    from deepprompt_ros.robots.spec import load_robot
 
     rclpy, node, ex = _role_node("bench_condition_client")
     srv_type = ListPrimitives if service == "list_primitives" else Condition
@@ -417,7 +417,7 @@ def stream_metrics(data, dt):
 
 def limit_check(data, dt, limits):
     """Violations in the commanded stream (segments between lost messages) and measured states."""
-    from deepprompt_ros.core.streaming import check_limits
+    from deepprompt_ros.execution.streamer import check_limits
 
     q, qd, stamp = data["q"], data["qd"], data["stamp"]
     viol, worst = 0, {}
@@ -486,8 +486,8 @@ def main(argv=None) -> int:
         role_client(args.out, args.gate, args.seconds, args.calls, args.service)
         return 0
 
-    from deepprompt_ros.core.robots import load_robot
-    from deepprompt_ros.core.server_logic import ServerConfig, robot_limits
+    from deepprompt_ros.robots.spec import load_robot
+    from deepprompt_ros.server.service_logic import ServerConfig, robot_limits
     from deepprompt_ros.ros.testing import NodeProcess, isolated_ros_env
 
     # SIGTERM (kill, timeout) ends the run like an error: the finally below stops every process started

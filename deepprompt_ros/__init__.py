@@ -1,6 +1,60 @@
 """deepprompt_ros — Deep Probabilistic Movement Primitives served to ROS 2 controllers.
 
-The maths lives in :mod:`deepprompt_ros.core` (no ROS needed); nodes live in
-:mod:`deepprompt_ros.ros`.
+Glossary (paper notation):
+  x  phase, normalized time in [0, 1] (rhythmic: fed to the network as [sin 2πx, cos 2πx])
+  y  joint positions, shape (d,)
+  a  via-point (x, y);  c  context (low-dimensional vector or camera images)
+  z  latent variable, shape (k,); q(z | A, C) is built by Bayesian aggregation
+  ω  importance weight of a via-point / context (0 removes it)
+  τ  time map t -> x (temporal modulation)
+
+Subpackages, by concept (imports run one way, from the top of this list down to the bottom):
+  model       the network, Bayesian aggregation, phase features, checkpoints
+  primitive   DeepProMP operations: condition, decode, sample, blend, refine, time maps
+  training    training configuration, objectives, the loop, basis initialization
+  baselines   ProMP, CNMP, VAE-CNMP and their Indep variants behind one interface
+  evaluation  reconstruction metrics used by the experiments
+  data        demonstration format, I/O, synthetic families, built-in datasets
+  robots      robot specs from URDF, kinematics, inverse kinematics, geometry
+  sim         the PyBullet simulation and the task-data generators (sim.tasks)
+  execution   joint limits, phase clock, reference, Ruckig streamer, the ROS-free stream loop
+  server      server configuration, primitives file, handles, request types, service logic
+  recording   kinesthetic recording: demo buffer, images, MCAP bag writer
+  ros         the only modules that import rclpy: the nodes and their message conversions
+
+Names below are imported lazily (torch, pinocchio and pybullet load only when used).
 """
+from importlib import import_module
+
 __version__ = "0.1.0"
+
+_EXPORTS = {
+    # model, training and operations
+    "ModelConfig": "model.network", "DeepProMPNet": "model.network", "bayesian_aggregate": "model.network",
+    "TrainConfig": "training.loop",
+    "DeepProMP": "primitive.deep_promp", "LatentGaussian": "primitive.deep_promp",
+    "RefinementResult": "primitive.deep_promp",
+    "load_checkpoint": "model.checkpoint", "save_checkpoint": "model.checkpoint",
+    "CheckpointError": "model.checkpoint",
+    "LinearTimeMap": "primitive.time_maps", "MonotoneTimeMap": "primitive.time_maps",
+    "RhythmicTimeMap": "primitive.time_maps",
+    # data
+    "Demonstration": "data.dataset", "DemoDataset": "data.dataset", "DatasetError": "data.dataset",
+    "demo_from_arrays": "data.dataset", "load_dataset": "data.dataset", "load_demo": "data.dataset",
+    "save_demo": "data.dataset", "load_csv": "data.dataset", "bimodal_sine": "data.dataset",
+    "builtin_dataset": "data.dataset",
+    # baseline
+    "ProMP": "baselines.promp",
+    # robots, simulation and streaming
+    "RobotSpec": "robots.spec", "load_robot": "robots.spec", "RobotKinematics": "robots.spec",
+    "Simulation": "sim.simulation",
+    "PhaseClock": "execution.streamer", "RuckigStreamer": "execution.streamer",
+    "JointLimits": "execution.streamer", "check_limits": "execution.streamer",
+}
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name):
+    if name in _EXPORTS:
+        return getattr(import_module(f".{_EXPORTS[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -12,7 +12,7 @@ import subprocess
 import sys
 import time
 
-from .paths import config_dir
+from deepprompt_ros.paths import config_dir
 
 
 def main(argv=None) -> int:

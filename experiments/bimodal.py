@@ -19,9 +19,9 @@ from typing import Callable
 
 import numpy as np
 
-from deepprompt_ros.core.dataset import bimodal_sine
-from deepprompt_ros.core.primitive import DeepProMP
-from deepprompt_ros.core.promp import ProMP
+from deepprompt_ros.data.dataset import bimodal_sine
+from deepprompt_ros.primitive.deep_promp import DeepProMP
+from deepprompt_ros.baselines.promp import ProMP
 
 from . import common
 from .common import Scale

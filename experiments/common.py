@@ -1,7 +1,7 @@
 """Shared pieces of the experiment harness: run sizes, task datasets, training configs, tables.
 
 Tasks are named. Built-in generators (no simulator needed) are always available; the PyBullet task
-datasets of :mod:`deepprompt_ros.core.tasks` (``make_task(name, split, quick, seed)``) plug in by
+datasets of :mod:`deepprompt_ros.sim.tasks.registry` (``make_task(name, split, quick, seed)``) plug in by
 name when that module exists — it is imported lazily, only when one of its tasks is asked for.
 
 ==================  ==========================================================================
@@ -13,7 +13,7 @@ task                data
 ``bimodal_sine``    :func:`core.dataset.bimodal_sine` (1 joint, two modes), context ``mode`` (1,)
 ``reach``,          :func:`core.tasks.make_task` (PyBullet analogues of the paper's RLBench tasks on
 ``close_box``,      the WAM, and the Kinova pick-and-place; contexts and camera images), when
-``pour``,           ``deepprompt_ros/core/tasks.py`` exists; generated splits are cached on disk
+``pour``,           ``deepprompt_ros/sim/tasks/registry.py`` exists; generated splits are cached on disk
 ``kinova_pick_place`` (:func:`cached_task_split`)
 ==================  ==========================================================================
 """
@@ -32,8 +32,8 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from deepprompt_ros.core.dataset import DemoDataset, bimodal_sine
-from deepprompt_ros.core.train import TrainConfig
+from deepprompt_ros.data.dataset import DemoDataset, bimodal_sine
+from deepprompt_ros.training.loop import TrainConfig
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 MODELS = ROOT / "models"
@@ -109,7 +109,7 @@ SCALES = {
 
 def _reach(robot: str) -> Callable[[int, int], DemoDataset]:
     def make(n: int, seed: int) -> DemoDataset:
-        from deepprompt_ros.core.reach import reach_demos  # pinocchio: imported when used
+        from deepprompt_ros.data.reach import reach_demos  # pinocchio: imported when used
 
         return reach_demos(robot, n_demos=n, seed=seed)
     return make
@@ -123,8 +123,8 @@ BUILTIN_TASKS: dict[str, Callable[[int, int], DemoDataset]] = {
 
 
 def pybullet_tasks_available() -> bool:
-    """True when ``deepprompt_ros/core/tasks.py`` exists (checked without importing it)."""
-    return importlib.util.find_spec("deepprompt_ros.core.tasks") is not None
+    """True when ``deepprompt_ros/sim/tasks/registry.py`` exists (checked without importing it)."""
+    return importlib.util.find_spec("deepprompt_ros.sim.tasks.registry") is not None
 
 
 def default_tasks(scale: Scale) -> tuple[str, ...]:
@@ -170,7 +170,7 @@ def load_task(name: str, scale: Scale, sizes: tuple[int, int, int] | None = None
         te = _subset(ds, range(n_tr + n_va, n_tr + n_va + n_te), "test")
     elif name in PYBULLET_TASKS:
         if not pybullet_tasks_available():
-            raise ValueError(f"task '{name}' needs deepprompt_ros/core/tasks.py (make_task), which is not there; "
+            raise ValueError(f"task '{name}' needs deepprompt_ros/sim/tasks/registry.py (make_task), which is not there; "
                              f"built-in tasks: {sorted(BUILTIN_TASKS)}")
         sz = sizes or scale.task_sizes or (None, None, None)
         tr, va, te = (cached_task_split(name, s, n, scale.task_quick) for s, n in zip(("train", "val", "test"), sz))
@@ -252,7 +252,7 @@ def _tasks_module():
     """(``core.tasks``, hash of its source) — the hash taken once, when the module is first imported
     here: the code that generates the data is the code in memory, even if the file changes later."""
     if not _TASKS:
-        from deepprompt_ros.core import tasks
+        from deepprompt_ros.sim.tasks import registry as tasks
 
         _TASKS.append((tasks, hashlib.sha1(pathlib.Path(tasks.__file__).read_bytes()).hexdigest()[:10]))
     return _TASKS[0]
@@ -263,7 +263,7 @@ def cached_task_split(name: str, split: str, n: int | None, quick: bool, seed: i
     :func:`data_cache_dir` (the key includes a hash of ``core/tasks.py``, so a changed generator is
     never read from a stale cache). Each cache entry keeps ``cache_info.json`` (the dataset's source
     and the generation time, s), so a read entry has the source of the generated one."""
-    from deepprompt_ros.core.dataset import load_dataset
+    from deepprompt_ros.data.dataset import load_dataset
 
     tasks, digest = _tasks_module()
     folder = data_cache_dir() / f"{name}_{split}_n{n}_q{int(quick)}_s{seed}_{digest}"

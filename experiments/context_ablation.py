@@ -38,7 +38,7 @@ import torch  # noqa: E402
 import yaml  # noqa: E402
 
 from experiments import common  # noqa: E402
-from deepprompt_ros.core.baselines import DeepProMPModel, reconstruction_mse  # noqa: E402
+from deepprompt_ros.baselines.models import DeepProMPModel, reconstruction_mse  # noqa: E402
 
 
 def ablation(task: str, steps: int = 2000, seed: int = 0, overrides: dict | None = None) -> dict:

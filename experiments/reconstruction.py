@@ -30,9 +30,9 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from deepprompt_ros.core.baselines import MODEL_CLASSES, ProMPModel, available_conditionings, reconstruction_mse
-from deepprompt_ros.core.dataset import DemoDataset
-from deepprompt_ros.core.train import TrainConfig
+from deepprompt_ros.baselines.models import MODEL_CLASSES, ProMPModel, available_conditionings, reconstruction_mse
+from deepprompt_ros.data.dataset import DemoDataset
+from deepprompt_ros.training.loop import TrainConfig
 
 from . import common
 from .common import Scale, TaskData
@@ -62,7 +62,7 @@ def evaluate(model, test: DemoDataset, n_points: int) -> dict[str, float]:
 
 
 # The files whose code determines a unit's result (their digest is part of every unit's key).
-SOURCES = ("experiments/reconstruction.py", "experiments/common.py", "deepprompt_ros/core/*.py")
+SOURCES = ("experiments/reconstruction.py", "experiments/common.py", "deepprompt_ros/**/*.py")
 
 
 def fit_unit(tasks: Mapping[str, TaskData], task: str, kind: str, seed: int, cfg: TrainConfig) -> dict:

@@ -25,7 +25,7 @@ from typing import Callable
 
 import numpy as np
 
-from deepprompt_ros.core.primitive import DeepProMP
+from deepprompt_ros.primitive.deep_promp import DeepProMP
 
 from . import common
 from .common import Scale
@@ -65,7 +65,7 @@ def error_curve(prim: DeepProMP, init, xv: np.ndarray, yv: np.ndarray, budgets) 
 
 
 # The files whose code determines a unit's result (their digest is part of every unit's key).
-SOURCES = ("experiments/refinement.py", "experiments/common.py", "deepprompt_ros/core/*.py")
+SOURCES = ("experiments/refinement.py", "experiments/common.py", "deepprompt_ros/**/*.py")
 CHECKPOINT = common.MODELS / "gen3_lite_reach.safetensors"
 
 

@@ -21,9 +21,9 @@ from typing import Callable
 
 import numpy as np
 
-from deepprompt_ros.core.baselines import ProMPModel
-from deepprompt_ros.core.dataset import wam_shake
-from deepprompt_ros.core.primitive import DeepProMP
+from deepprompt_ros.baselines.models import ProMPModel
+from deepprompt_ros.data.dataset import wam_shake
+from deepprompt_ros.primitive.deep_promp import DeepProMP
 
 from . import common
 from .common import Scale
@@ -36,7 +36,7 @@ def load_primitive(scale: Scale, log: Callable[[str], None] = print) -> tuple[De
     path = common.MODELS / "wam_shake.safetensors"
     if path.is_file():
         return DeepProMP.from_checkpoint(str(path)), str(path.relative_to(common.ROOT))
-    from deepprompt_ros.core.train import TrainConfig, train
+    from deepprompt_ros.training.loop import TrainConfig, train
 
     cfg = TrainConfig.from_yaml(common.ROOT / "config" / "train_wam_shake.yaml")
     cfg = dataclasses.replace(cfg, steps=scale.rhythmic_train_steps, threads=1,

@@ -132,7 +132,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", help="output folder (default: docs/experiments for --medium / --full, a temp folder "
                     "for --quick)")
     ap.add_argument("--tasks", nargs="+", help="reconstruction tasks (default: gen3_lite_reach for --quick; else "
-                    "reach close_box pour kinova_pick_place (if deepprompt_ros/core/tasks.py exists) gen3_lite_reach "
+                    "reach close_box pour kinova_pick_place (if deepprompt_ros/sim/tasks/registry.py exists) gen3_lite_reach "
                     "bimodal_sine)")
     ap.add_argument("--config", help="TrainConfig YAML for the deep models (default config/train_gen3_lite_reach.yaml)")
     ap.add_argument("--jobs", type=int, default=1, metavar="N",

@@ -40,9 +40,9 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from deepprompt_ros.core.baselines import DeepProMPModel, ProMPModel, reconstruction_mse
-from deepprompt_ros.core.dataset import DemoDataset
-from deepprompt_ros.core.train import TrainConfig, cv_basis_hyperparameters, fold_assignment
+from deepprompt_ros.baselines.models import DeepProMPModel, ProMPModel, reconstruction_mse
+from deepprompt_ros.data.dataset import DemoDataset
+from deepprompt_ros.training.loop import TrainConfig, cv_basis_hyperparameters, fold_assignment
 
 from . import common
 from .common import Scale
@@ -312,7 +312,7 @@ def small_data(train_config: TrainConfig, data: tuple[DemoDataset, DemoDataset] 
 
 
 # The files whose code determines a unit's result (their digest is part of every unit's key).
-SOURCES = ("experiments/small_data.py", "experiments/common.py", "deepprompt_ros/core/*.py")
+SOURCES = ("experiments/small_data.py", "experiments/common.py", "deepprompt_ros/**/*.py")
 
 
 def unit_context(train_ds: DemoDataset, test_ds: DemoDataset) -> dict:

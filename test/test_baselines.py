@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from deepprompt_ros.core import baselines as bl
-from deepprompt_ros.core.dataset import Demonstration, DemoDataset
-from deepprompt_ros.core.train import TrainConfig, fit_normalization, to_tensors
+from deepprompt_ros.baselines import models as bl
+from deepprompt_ros.data.dataset import Demonstration, DemoDataset
+from deepprompt_ros.training.loop import TrainConfig, fit_normalization, to_tensors
 
 torch.set_num_threads(1)
 

@@ -9,7 +9,7 @@ from deepprompt_msgs.msg import Context, TrajectoryPreview
 from deepprompt_msgs.srv import Condition, Sample
 from trajectory_msgs.msg import JointTrajectory
 
-from deepprompt_ros.core import server_logic as sl
+from deepprompt_ros.server import service_logic as sl
 from deepprompt_ros.ros import conversions as conv
 
 

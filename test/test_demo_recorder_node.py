@@ -1,4 +1,4 @@
-"""Demo recording: the ROS-free core (deepprompt_ros.core.recording) in-process, then the
+"""Demo recording: the ROS-free core (deepprompt_ros.recording.recorder) in-process, then the
 demo_recorder node as a real process next to a real sim_bridge process (localhost DDS, random
 domain): a kinesthetic demonstration guided in the simulation, bad requests, crash safety."""
 import pathlib
@@ -16,9 +16,9 @@ from rclpy.serialization import serialize_message
 from sensor_msgs.msg import JointState
 from std_srvs.srv import SetBool, Trigger
 
-from deepprompt_ros.core import recording as rec
-from deepprompt_ros.core.dataset import load_dataset, load_demo
-from deepprompt_ros.core.robots import RobotKinematics, load_robot
+from deepprompt_ros.recording import recorder as rec
+from deepprompt_ros.data.dataset import load_dataset, load_demo
+from deepprompt_ros.robots.spec import RobotKinematics, load_robot
 from deepprompt_ros.ros import conversions as conv
 from deepprompt_ros.ros.demo_recorder import PARAMETERS
 from deepprompt_ros.ros.testing import NodeProcess, RosTestClient, isolated_ros_env

@@ -19,9 +19,9 @@ from rclpy.action import ActionClient
 from sensor_msgs.msg import JointState
 from std_srvs.srv import SetBool, Trigger
 
-from deepprompt_ros.core.dataset import load_dataset
-from deepprompt_ros.core.robots import RobotKinematics, load_robot
-from deepprompt_ros.core.train import TrainConfig, train
+from deepprompt_ros.data.dataset import load_dataset
+from deepprompt_ros.robots.spec import RobotKinematics, load_robot
+from deepprompt_ros.training.loop import TrainConfig, train
 from deepprompt_ros.ros import conversions as conv
 from deepprompt_ros.ros.testing import JointStateTap, NodeProcess, RosTestClient, isolated_ros_env
 

@@ -18,8 +18,8 @@ import torch
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from deepprompt_ros.core.baselines import MODEL_CLASSES  # noqa: E402
-from deepprompt_ros.core.dataset import Demonstration, DemoDataset  # noqa: E402
+from deepprompt_ros.baselines.models import MODEL_CLASSES  # noqa: E402
+from deepprompt_ros.data.dataset import Demonstration, DemoDataset  # noqa: E402
 from experiments import common, reconstruction  # noqa: E402
 from experiments.run import EXPERIMENTS, UNIT_EXPERIMENTS  # noqa: E402
 from experiments.units import Unit, UnitCache  # noqa: E402
@@ -160,7 +160,7 @@ def test_the_residual_is_kept_only_beyond_one_standard_error():
 
 
 def test_residual_cross_validation_holds_out_every_training_demo_once():
-    from deepprompt_ros.core.train import TrainConfig
+    from deepprompt_ros.training.loop import TrainConfig
     from experiments.small_data import RESIDUAL_CONFIG, default_data, residual_cv_errors
 
     train, _ = default_data(12, 2)

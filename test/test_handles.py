@@ -1,13 +1,13 @@
-"""deepprompt_ros.core.handles: bounded handle store (expiry, LRU eviction, refusal when full),
+"""deepprompt_ros.server.handles: bounded handle store (expiry, LRU eviction, refusal when full),
 blended latent distributions (paper Eq. 4). No ROS, no model: fast."""
 import threading
 
 import numpy as np
 import pytest
 
-from deepprompt_ros.core.handles import (BlendedLatent, ConditionedLatent, HandleLimitError, HandleStore,
+from deepprompt_ros.server.handles import (BlendedLatent, ConditionedLatent, HandleLimitError, HandleStore,
                                          Schedule, UnknownHandleError)
-from deepprompt_ros.core.primitive import LatentGaussian
+from deepprompt_ros.primitive.deep_promp import LatentGaussian
 
 
 class FakeClock:

@@ -4,10 +4,10 @@ import pathlib
 import numpy as np
 import pytest
 
-from deepprompt_ros.core.dataset import bimodal_sine, wam_shake
-from deepprompt_ros.core.primitive import DeepProMP, LatentGaussian
-from deepprompt_ros.core.promp import ProMP
-from deepprompt_ros.core.temporal import LinearTimeMap, MonotoneTimeMap, RhythmicTimeMap, evaluate
+from deepprompt_ros.data.dataset import bimodal_sine, wam_shake
+from deepprompt_ros.primitive.deep_promp import DeepProMP, LatentGaussian
+from deepprompt_ros.baselines.promp import ProMP
+from deepprompt_ros.primitive.time_maps import LinearTimeMap, MonotoneTimeMap, RhythmicTimeMap, evaluate
 
 MODELS = pathlib.Path(__file__).resolve().parents[1] / "models"
 
@@ -168,8 +168,8 @@ def test_refinement_keeps_sample_cloud_on_via_points(reach):
 
 # ------------------------------------------------------------------ context conditioning
 def test_context_conditioning_reaches_towards_the_object(reach):
-    from deepprompt_ros.core.reach import reach_demos
-    from deepprompt_ros.core.robots import RobotKinematics, load_robot
+    from deepprompt_ros.data.reach import reach_demos
+    from deepprompt_ros.robots.spec import RobotKinematics, load_robot
 
     kin = RobotKinematics(load_robot("gen3_lite"))
     held_out = reach_demos(n_demos=6, seed=777)

@@ -21,13 +21,13 @@ from rclpy.action import ActionClient
 from sensor_msgs.msg import Image, JointState
 from trajectory_msgs.msg import JointTrajectory
 
-from deepprompt_ros.core import server_logic as sl
-from deepprompt_ros.core.checkpoint import Normalization, save_checkpoint
-from deepprompt_ros.core.dataset import Demonstration, DemoDataset
-from deepprompt_ros.core.model import DeepProMPNet, ModelConfig
-from deepprompt_ros.core.robots import load_robot
-from deepprompt_ros.core.streaming import check_limits
-from deepprompt_ros.core.train import TrainConfig, train
+from deepprompt_ros.server import service_logic as sl
+from deepprompt_ros.model.checkpoint import Normalization, save_checkpoint
+from deepprompt_ros.data.dataset import Demonstration, DemoDataset
+from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
+from deepprompt_ros.robots.spec import load_robot
+from deepprompt_ros.execution.streamer import check_limits
+from deepprompt_ros.training.loop import TrainConfig, train
 from deepprompt_ros.ros import conversions as conv
 from deepprompt_ros.ros.testing import NodeProcess, RosTestClient, isolated_ros_env
 

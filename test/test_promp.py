@@ -1,8 +1,8 @@
-"""Tests of deepprompt_ros.core.promp (seeded, numbers and properties)."""
+"""Tests of deepprompt_ros.baselines.promp (seeded, numbers and properties)."""
 import numpy as np
 import pytest
 
-from deepprompt_ros.core.promp import ProMP, TrajectoryDistribution
+from deepprompt_ros.baselines.promp import ProMP, TrajectoryDistribution
 
 T = 100
 X = np.linspace(0.0, 1.0, T)

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from deepprompt_ros.core.checkpoint import Normalization, load_checkpoint, save_checkpoint
-from deepprompt_ros.core.dataset import Demonstration, DemoDataset
-from deepprompt_ros.core.model import DeepProMPNet, ModelConfig, phase_basis
-from deepprompt_ros.core.primitive import DeepProMP, LatentGaussian
-from deepprompt_ros.core.promp import ProMP
-from deepprompt_ros.core.train import (TrainConfig, cv_basis_hyperparameters, fit_normalization, init_basis_pca,
+from deepprompt_ros.model.checkpoint import Normalization, load_checkpoint, save_checkpoint
+from deepprompt_ros.data.dataset import Demonstration, DemoDataset
+from deepprompt_ros.model.network import DeepProMPNet, ModelConfig, phase_basis
+from deepprompt_ros.primitive.deep_promp import DeepProMP, LatentGaussian
+from deepprompt_ros.baselines.promp import ProMP
+from deepprompt_ros.training.loop import (TrainConfig, cv_basis_hyperparameters, fit_normalization, init_basis_pca,
                                        linear_map_condition, pca_basis, to_tensors, train)
 
 torch.set_num_threads(1)

@@ -7,7 +7,7 @@ import pinocchio as pin
 import pybullet as pb
 import pytest
 
-from deepprompt_ros.core.robots import (
+from deepprompt_ros.robots.spec import (
     DEFAULT_ACCELERATION_PER_VELOCITY,
     DEFAULT_JERK_PER_ACCELERATION,
     GRAVITY,

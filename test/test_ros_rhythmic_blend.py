@@ -18,9 +18,9 @@ from deepprompt_msgs.msg import Context, ResultCode
 from deepprompt_msgs.srv import Blend, Condition, SetPhaseRate
 from rclpy.action import ActionClient
 
-from deepprompt_ros.core import server_logic as sl
-from deepprompt_ros.core.robots import load_robot
-from deepprompt_ros.core.streaming import check_limits
+from deepprompt_ros.server import service_logic as sl
+from deepprompt_ros.robots.spec import load_robot
+from deepprompt_ros.execution.streamer import check_limits
 from deepprompt_ros.ros import conversions as conv
 from deepprompt_ros.ros.testing import JointStateTap, NodeProcess, RosTestClient, isolated_ros_env
 

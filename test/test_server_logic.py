@@ -1,4 +1,4 @@
-"""deepprompt_ros.core.server_logic and the ROS-free control loop (ros.stream_loop): parameters,
+"""deepprompt_ros.server.service_logic and the ROS-free control loop (ros.stream_loop): parameters,
 primitive loading, request validation with result codes, conditioning / refinement / blending /
 sampling, execution planning, and the command stream (limits, splicing, cancel, stale state).
 
@@ -13,12 +13,12 @@ import pytest
 import torch
 import yaml
 
-from deepprompt_ros.core import server_logic as sl
-from deepprompt_ros.core.checkpoint import Normalization, save_checkpoint
-from deepprompt_ros.core.model import DeepProMPNet, ModelConfig
-from deepprompt_ros.core.robots import load_robot
-from deepprompt_ros.core.streaming import check_limits
-from deepprompt_ros.ros.stream_loop import (BrakeTail, ExecutionController, ExecutionGoal, MeasuredState, Stage,
+from deepprompt_ros.server import service_logic as sl
+from deepprompt_ros.model.checkpoint import Normalization, save_checkpoint
+from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
+from deepprompt_ros.robots.spec import load_robot
+from deepprompt_ros.execution.streamer import check_limits
+from deepprompt_ros.execution.stream_loop import (BrakeTail, ExecutionController, ExecutionGoal, MeasuredState, Stage,
                                             trajectory_points)
 
 REPO = pathlib.Path(__file__).resolve().parent.parent

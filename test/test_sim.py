@@ -5,8 +5,8 @@ import numpy as np
 import pybullet as pb
 import pytest
 
-from deepprompt_ros.core.robots import RobotKinematics, load_robot
-from deepprompt_ros.core.sim import CameraPose, Simulation
+from deepprompt_ros.robots.spec import RobotKinematics, load_robot
+from deepprompt_ros.sim.simulation import CameraPose, Simulation
 
 
 @pytest.fixture

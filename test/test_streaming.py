@@ -1,4 +1,4 @@
-"""Tests of deepprompt_ros.core.streaming: phase clock, reference derivatives, and the Ruckig
+"""Tests of deepprompt_ros.execution.streamer: phase clock, reference derivatives, and the Ruckig
 streamer with real ruckig (no mocks). Limits are checked on every produced sample with
 check_limits: |qd| <= v, |qdd| <= a per sample and |Δq|/dt <= v, |Δqd|/dt <= a,
 |Δqdd|/dt <= j between successive samples (finite-difference jerk of the reported
@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from deepprompt_ros.core.streaming import (
+from deepprompt_ros.execution.streamer import (
     JointLimits,
     PhaseClock,
     RuckigStreamer,

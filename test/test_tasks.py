@@ -1,4 +1,4 @@
-"""PyBullet task datasets (deepprompt_ros.core.tasks): real PyBullet and Pinocchio, no mocks.
+"""PyBullet task datasets (deepprompt_ros.sim.tasks.registry): real PyBullet and Pinocchio, no mocks.
 
 Small seeded datasets are generated once per module (the quick configuration records the plan;
 one small set is executed in the simulation) and checked against the scene they claim to show.
@@ -9,9 +9,9 @@ import math
 import numpy as np
 import pytest
 
-from deepprompt_ros.core.dataset import builtin_dataset, load_dataset
-from deepprompt_ros.core.robots import RobotKinematics, load_robot
-from deepprompt_ros.core.tasks import (
+from deepprompt_ros.data.dataset import builtin_dataset, load_dataset
+from deepprompt_ros.robots.spec import RobotKinematics, load_robot
+from deepprompt_ros.sim.tasks.registry import (
     SPLITS,
     TASKS,
     ViaTrajectory,
@@ -174,7 +174,7 @@ def test_images_differ_when_the_context_differs(data):
 
 
 def test_close_box_motion_matches_box_pose_and_lid_angle(data, kin):
-    from deepprompt_ros.core.tasks import _BOX_H, _BOX_L, _BOX_W, _LID_T
+    from deepprompt_ros.sim.tasks.registry import _BOX_H, _BOX_L, _BOX_W, _LID_T
 
     k = kin["wam"]
     for d in data["close_box"].demos:
@@ -211,7 +211,7 @@ def test_close_box_motion_matches_box_pose_and_lid_angle(data, kin):
 
 
 def test_pour_grasps_the_cup_and_tilts_over_the_pot_to_either_side(data, kin):
-    from deepprompt_ros.core.tasks import _CUP_H, _CUP_R
+    from deepprompt_ros.sim.tasks.registry import _CUP_H, _CUP_R
 
     k = kin["wam"]
     signs = []

@@ -4,7 +4,7 @@ Why: in one interpreter the control thread and the service handlers share one in
 With both in the node's process, a Condition request that takes ~2 ms alone took 8.8 ms (p50)
 inside the handler and the loop missed thousands of periods per minute (README "Measured
 figures"). Here the child process owns everything that runs per tick: the
-:class:`~deepprompt_ros.ros.stream_loop.StreamLoop` with its controller, the ``joint_command``
+:class:`~deepprompt_ros.execution.stream_loop.StreamLoop` with its controller, the ``joint_command``
 and JointTrajectory publishers and the joint_states reader (:class:`~deepprompt_ros.ros.loop_io.LoopIO`),
 on its own rclpy context and node (``<server>_control``, same namespace, topic names resolved by
 the server so remappings apply). The server keeps the services and the Execute action.
@@ -41,8 +41,8 @@ import threading  # noqa: E402
 import time  # noqa: E402
 from multiprocessing.connection import Connection  # noqa: E402
 
-from deepprompt_ros.core.server_logic import Code, RequestError  # noqa: E402
-from deepprompt_ros.ros.stream_loop import ExecutionGoal, Outcome, Stage, name_os_thread  # noqa: E402
+from deepprompt_ros.server.service_logic import Code, RequestError  # noqa: E402
+from deepprompt_ros.execution.stream_loop import ExecutionGoal, Outcome, Stage, name_os_thread  # noqa: E402
 
 __all__ = ["ControlProcess", "main"]
 
@@ -51,7 +51,7 @@ STATUS_PERIOD = 0.01  #: s between two status messages of the child
 
 class ControlProcess:
     """Server-side proxy of the control loop in a child process; the same interface as the
-    in-process :class:`~deepprompt_ros.ros.stream_loop.StreamLoop` offers the node
+    in-process :class:`~deepprompt_ros.execution.stream_loop.StreamLoop` offers the node
     (``execute``, ``cancel``, ``set_rate``, ``active_goal``, ``measured_age``, ``summary``,
     ``shutdown``).
 
@@ -268,7 +268,7 @@ def _child(fd: int, parent_pid: int) -> int:
         # real-time control thread waits for that lock (priority inversion). The other threads sleep
         # almost always (status every STATUS_PERIOD, the link, the JointTrajectory snapshots); the
         # control thread sets its own priority again.
-        from deepprompt_ros.ros.stream_loop import set_fifo_priority
+        from deepprompt_ros.execution.stream_loop import set_fifo_priority
 
         set_fifo_priority(cfg.realtime_priority)  # refused: the control thread reports it
 
@@ -276,7 +276,7 @@ def _child(fd: int, parent_pid: int) -> int:
     from rclpy.signals import SignalHandlerOptions
 
     from deepprompt_ros.ros.loop_io import LoopIO
-    from deepprompt_ros.ros.stream_loop import (ExecutionController, StreamLoop, freeze_startup_objects,
+    from deepprompt_ros.execution.stream_loop import (ExecutionController, StreamLoop, freeze_startup_objects,
                                                 set_switch_interval)
 
     set_switch_interval(cfg.gil_switch_interval)

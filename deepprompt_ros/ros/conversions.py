@@ -363,7 +363,7 @@ def context_vector(msg, *, pose_fields: str = "position") -> np.ndarray:
 # ----------------------------------------------------------------------------------------------
 # primitive server (deepprompt_msgs requests / responses, trajectory_msgs output)
 # ----------------------------------------------------------------------------------------------
-# The plain request / result types live in deepprompt_ros.core.server_logic (imported lazily:
+# The plain request / result types live in deepprompt_ros.server.service_logic (imported lazily:
 # it pulls in torch, which nodes that do not serve primitives should not pay for).
 
 def sec_to_duration(t: float):
@@ -384,7 +384,7 @@ def duration_to_sec(d) -> float:
 def via_points_from_msgs(msgs) -> list:
     """``deepprompt_msgs/ViaPoint[]`` -> list of ``server_logic.ViaPointIn`` (no validation here:
     the server checks phases, sizes and weights against the primitive)."""
-    from deepprompt_ros.core.server_logic import ViaPointIn
+    from deepprompt_ros.server.service_logic import ViaPointIn
 
     return [ViaPointIn(float(m.phase), np.asarray(m.positions, dtype=np.float64),
                        np.asarray(m.joint_mask, dtype=bool), bool(m.use_weight), float(m.weight))
@@ -421,7 +421,7 @@ def via_points_to_msgs(phases, positions, joint_masks=None, weights=None) -> lis
 def image_fields(msg: Image):
     """``sensor_msgs/Image`` -> ``server_logic.ImageIn`` (raw bytes, no copy; the server checks
     encoding and size against the primitive)."""
-    from deepprompt_ros.core.server_logic import ImageIn
+    from deepprompt_ros.server.service_logic import ImageIn
 
     try:
         buf = np.frombuffer(msg.data, dtype=np.uint8)
@@ -432,7 +432,7 @@ def image_fields(msg: Image):
 
 def contexts_from_msgs(msgs) -> list:
     """``deepprompt_msgs/Context[]`` -> list of ``server_logic.ContextIn``."""
-    from deepprompt_ros.core.server_logic import ContextIn
+    from deepprompt_ros.server.service_logic import ContextIn
 
     return [ContextIn(str(m.modality), np.asarray(m.values, dtype=np.float64),
                       tuple(image_fields(im) for im in m.images), bool(m.use_weight), float(m.weight))

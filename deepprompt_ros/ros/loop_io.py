@@ -3,7 +3,7 @@
 Used by primitive_server both when the loop runs in its own interpreter
 (:mod:`deepprompt_ros.ros.control_process`, the default) and in the node's process
 (``loop_process: false``). Each :class:`LoopIO` belongs to one rclpy node; its three callables are
-what :class:`~deepprompt_ros.ros.stream_loop.StreamLoop` takes.
+what :class:`~deepprompt_ros.execution.stream_loop.StreamLoop` takes.
 """
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
 from deepprompt_ros.ros import conversions as conv
-from deepprompt_ros.ros.stream_loop import BrakeTail, trajectory_points
+from deepprompt_ros.execution.stream_loop import BrakeTail, trajectory_points
 
 __all__ = ["TrajectorySerializer", "LoopIO"]
 

@@ -2,7 +2,7 @@
 
 Run: ``ros2 run deepprompt_ros primitive_server [--ros-args --params-file config/primitive_server.yaml]``
 (or ``python -m deepprompt_ros.ros.primitive_server``). Parameters: the fields of
-:class:`deepprompt_ros.core.server_logic.ServerConfig` (``parameters_markdown()`` renders them).
+:class:`deepprompt_ros.server.service_logic.ServerConfig` (``parameters_markdown()`` renders them).
 
 Interfaces (``~`` = the node's name, ``/primitive_server`` by default):
 
@@ -63,11 +63,11 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 
 from deepprompt_ros import paths
-from deepprompt_ros.core import server_logic as sl
+from deepprompt_ros.server import service_logic as sl
 from deepprompt_ros.ros import conversions as conv
 from deepprompt_ros.ros.control_process import ControlProcess
 from deepprompt_ros.ros.loop_io import LoopIO, TrajectorySerializer
-from deepprompt_ros.ros.stream_loop import (ExecutionController, ExecutionGoal, GcMonitor, StreamLoop,
+from deepprompt_ros.execution.stream_loop import (ExecutionController, ExecutionGoal, GcMonitor, StreamLoop,
                                             freeze_startup_objects, name_os_thread, set_switch_interval)
 
 __all__ = ["PrimitiveServer", "TrajectorySerializer", "main"]
@@ -81,7 +81,7 @@ class PrimitiveServer(Node):
         log = self.get_logger()
         self.cfg = cfg = self._read_parameters()
         set_switch_interval(cfg.gil_switch_interval)
-        from deepprompt_ros.core.robots import load_robot  # pinocchio: after the parameters are checked
+        from deepprompt_ros.robots.spec import load_robot  # pinocchio: after the parameters are checked
 
         try:
             self.robot = load_robot(cfg.robot)

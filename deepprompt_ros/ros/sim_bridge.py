@@ -1,4 +1,4 @@
-"""sim_bridge: one simulated arm (PyBullet, :class:`~deepprompt_ros.core.sim.Simulation`) over ROS 2.
+"""sim_bridge: one simulated arm (PyBullet, :class:`~deepprompt_ros.sim.simulation.Simulation`) over ROS 2.
 
 Run: ``ros2 run deepprompt_ros sim_bridge --ros-args --params-file config/sim_bridge.yaml``
 (or ``python -m deepprompt_ros.ros.sim_bridge ...``).
@@ -31,7 +31,7 @@ Time: every message is stamped with the simulation time, ``t_start + sim_time`` 
 follows the wall clock, otherwise use ``use_sim_time`` with ``/clock`` in the consumers.
 
 All PyBullet calls run on one simulation thread, paced with ``time.perf_counter`` (see
-:meth:`Simulation.step <deepprompt_ros.core.sim.Simulation.step>`); ROS callbacks hand it work.
+:meth:`Simulation.step <deepprompt_ros.sim.simulation.Simulation.step>`); ROS callbacks hand it work.
 
 Cost per physics step (1 kHz, Python): the simulation thread also takes the joint commands from
 their subscription (a helper node that no executor spins: an executor callback per message cost
@@ -67,7 +67,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, JointState
 from std_srvs.srv import SetBool, Trigger
 
-from deepprompt_ros.core.sim import SHAPES, CameraPose, Simulation
+from deepprompt_ros.sim.simulation import SHAPES, CameraPose, Simulation
 from deepprompt_ros.ros import conversions as conv
 from deepprompt_ros.ros.parameters import ConfigError, ParamSpec, declare_all
 from deepprompt_ros.ros.parameters import declare as _declare
@@ -257,7 +257,7 @@ class SimBridge(Node):
             raise ConfigError(f"parameter 'rate_hz' = {p['rate_hz']} is too low; expected 0 (robot's "
                               f"control rate) or 10..5000 Hz")
         try:
-            from deepprompt_ros.core.robots import load_robot
+            from deepprompt_ros.robots.spec import load_robot
 
             spec = load_robot(p["robot"])
         except ValueError as exc:

@@ -477,7 +477,7 @@ class JointStateTap:
         from rclpy.serialization import deserialize_message
         from sensor_msgs.msg import JointState
 
-        from . import conversions as conv
+        from deepprompt_ros.ros import conversions as conv
 
         msgs = [deserialize_message(b, JointState) for b in self.raw]
         d = len(names)

@@ -2,22 +2,22 @@
 
 The paper evaluates reconstruction on three RLBench tasks (Reach, Close Box, Pour Water) and a
 Kinova Gen3 lite pick-and-place task; the Barrett WAM shaking task is the built-in
-:func:`~deepprompt_ros.core.dataset.wam_shake`. RLBench (CoppeliaSim) cannot run here, so each task
+:func:`~deepprompt_ros.data.dataset.wam_shake`. RLBench (CoppeliaSim) cannot run here, so each task
 below is re-created in PyBullet with a scripted demonstrator. Every demonstration has joint
 trajectories (``t`` (T,), ``q`` (T, d), joint names), one low-dimensional context vector and
-several camera images of the scene, in the format of :mod:`deepprompt_ros.core.dataset`.
+several camera images of the scene, in the format of :mod:`deepprompt_ros.data.dataset`.
 
 Usage::
 
-    from deepprompt_ros.core.tasks import make_task, TASKS
+    from deepprompt_ros.sim.tasks.registry import make_task, TASKS
     train = make_task("reach", split="train")             # 500 demos, the paper's size
     quick = make_task("close_box", split="val", quick=True)
 
-    python -m deepprompt_ros.core.tasks reach --out data/reach [--quick] [--split train] [--n 50]
+    python -m deepprompt_ros.sim.tasks.registry reach --out data/reach [--quick] [--split train] [--n 50]
 
 The command writes ``DIR/train``, ``DIR/val``, ``DIR/test`` (each a dataset folder for
 ``train --data``) and ``DIR/task.json`` (task, seed, sizes, context layout, generation time).
-``python -m deepprompt_ros.core.train --builtin reach`` generates the full training split in
+``python -m deepprompt_ros.training.loop --builtin reach`` generates the full training split in
 memory (with simulated execution: minutes, see below); generating once to a folder and training
 with ``--data DIR/train`` avoids repeating that.
 
@@ -51,7 +51,7 @@ acceleration at every via-configuration, zero velocity at start / end / holds, m
 (Fritsch–Butland) velocities elsewhere scaled by a per-demo "flow" factor, segment durations
 from the joint distance with per-demo random factors, then the whole timing stretched until peak
 velocities and accelerations are ≤ 85 % of the robot's limits. The trajectory is executed in the
-PyBullet position control of :class:`~deepprompt_ros.core.sim.Simulation` (500 Hz, feed-forward
+PyBullet position control of :class:`~deepprompt_ros.sim.simulation.Simulation` (500 Hz, feed-forward
 velocity) and the *simulated* joint states are recorded at ``n_points`` equally spaced times
 (``simulate=False`` records the plan instead; the quick configuration does that by default),
 including a 0.3 s settling tail. Simulated and planned joint positions differ by ≤ ~0.01 rad. Each demo draws
@@ -112,7 +112,7 @@ full configuration     demos           wall (s/demo)       CPU (s/demo) demo len
 ``kinova_pick_place``  100             44 s (0.44)         0.28         5.8-11.5
 =====================  ==============  ==================  ===========  =====================
 
-(``python -m deepprompt_ros.core.tasks NAME --out DIR``; the simulated execution at 250 Hz is
+(``python -m deepprompt_ros.sim.tasks.registry NAME --out DIR``; the simulated execution at 250 Hz is
 most of the cost, so time grows with the demo length.) The quick configuration (35 demos, plan
 recorded) took 4.3 s (reach), 4.7 s (close_box), 3.6 s (pour) and 1.8 s (kinova_pick_place) for
 the three splits. On disk (compressed .npz): reach 9.5 MB, close_box 16 MB, pour 16 MB,
@@ -134,7 +134,7 @@ from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
-from .dataset import DatasetError, Demonstration, DemoDataset
+from deepprompt_ros.data.dataset import DatasetError, Demonstration, DemoDataset
 
 __all__ = [
     "TASKS",
@@ -169,7 +169,7 @@ class TaskSpec:
     ----------
     name : str
     robot : str
-        Name for :func:`~deepprompt_ros.core.robots.load_robot`.
+        Name for :func:`~deepprompt_ros.robots.spec.load_robot`.
     contexts : tuple of (str, int)
         Context modalities and their dimensions.
     n_images : int
@@ -463,7 +463,7 @@ def project_point(camera, point, width: int, height: int) -> np.ndarray:
     """Normalized pixel position (u, v) of a world point in ``camera``'s image.
 
     Uses the same view / projection matrices as
-    :meth:`~deepprompt_ros.core.sim.Simulation.camera_image` (PyBullet's
+    :meth:`~deepprompt_ros.sim.simulation.Simulation.camera_image` (PyBullet's
     ``computeViewMatrix`` / ``computeProjectionMatrixFOV``, OpenGL conventions): u = (x_ndc + 1)/2
     from the left edge, v = (1 − y_ndc)/2 from the top edge, so pixel column = u·width and
     row = v·height (pixel centres at half-integers).
@@ -490,7 +490,7 @@ def project_point(camera, point, width: int, height: int) -> np.ndarray:
 
 
 def _wam_cameras():
-    from .sim import CameraPose
+    from deepprompt_ros.sim.simulation import CameraPose
 
     return (
         CameraPose(eye=(1.7, 0.0, 1.0), target=(0.5, 0.0, 0.25), fov_deg=50.0),        # front
@@ -502,7 +502,7 @@ def _wam_cameras():
 
 def _wrist_camera(pose):
     """Camera on the tool plate looking along the tool axis (the 5th, moving camera)."""
-    from .sim import CameraPose
+    from deepprompt_ros.sim.simulation import CameraPose
 
     z, x = pose.rotation[:, 2], pose.rotation[:, 0]
     eye = pose.position + 0.02 * z
@@ -510,7 +510,7 @@ def _wrist_camera(pose):
 
 
 def _kinova_cameras():
-    from .sim import CameraPose
+    from deepprompt_ros.sim.simulation import CameraPose
 
     return (
         CameraPose(eye=(0.95, 0.0, 0.55), target=(0.34, 0.0, 0.0), fov_deg=42.0),       # front
@@ -525,7 +525,7 @@ class _Scene:
     """A Simulation with a table, temporary objects, collision sweeps, images and execution."""
 
     def __init__(self, robot: str, image_size: int):
-        from .sim import Simulation
+        from deepprompt_ros.sim.simulation import Simulation
 
         self.sim = Simulation(robot, timestep=_SIM_DT, ground=False)
         self.spec = self.sim.spec
@@ -1010,7 +1010,7 @@ def make_task(name: str, split: str = "train", n: int | None = None, quick: bool
 # ----------------------------------------------------------------------------------------------
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
-        prog="python -m deepprompt_ros.core.tasks",
+        prog="python -m deepprompt_ros.sim.tasks.registry",
         description="Generate a task dataset (PyBullet, scripted demonstrator) in the .npz demonstration "
                     "format: OUT/train, OUT/val, OUT/test and OUT/task.json.")
     ap.add_argument("task", help=f"task name: {' | '.join(TASKS)}")

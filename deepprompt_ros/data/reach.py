@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .dataset import Demonstration, DemoDataset
-from .robots import RobotKinematics, load_robot
+from deepprompt_ros.data.dataset import Demonstration, DemoDataset
+from deepprompt_ros.robots.spec import RobotKinematics, load_robot
 
 
 def inverse_kinematics(kin: RobotKinematics, target, q0, iterations: int = 200, damping: float = 1e-2,

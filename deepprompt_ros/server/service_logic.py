@@ -22,12 +22,12 @@ from typing import TYPE_CHECKING, Any, Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
-from .handles import (BlendedLatent, ConditionedLatent, HandleLimitError, HandleStore, Schedule,
+from deepprompt_ros.server.handles import (BlendedLatent, ConditionedLatent, HandleLimitError, HandleStore, Schedule,
                       StoredDistribution, UnknownHandleError)
-from .streaming import JointLimits, PhaseClock
+from deepprompt_ros.execution.streamer import JointLimits, PhaseClock
 
 if TYPE_CHECKING:  # imported where models are loaded: parameters are checked without torch
-    from .primitive import DeepProMP
+    from deepprompt_ros.primitive.deep_promp import DeepProMP
 
 __all__ = [
     "Code", "RequestError", "ConfigError", "ParamSpec", "ServerConfig", "PARAMETERS",
@@ -431,7 +431,7 @@ class LoadedPrimitive:
 def load_primitive(entry: PrimitiveEntry, robot_joint_names: Sequence[str],
                    resolve: Callable[[str], pathlib.Path]) -> LoadedPrimitive:
     """Load one model and check it against the robot; ValueError/FileNotFoundError say why not."""
-    from .primitive import DeepProMP
+    from deepprompt_ros.primitive.deep_promp import DeepProMP
 
     path = resolve(entry.model)
     model = DeepProMP.from_checkpoint(str(path), name=entry.name)
@@ -1142,5 +1142,5 @@ class PrimitiveServerCore:
                                f"(phase rate <= {1 / t_min:.4g} /s)")
 
 
-if __name__ == "__main__":  # python -m deepprompt_ros.core.server_logic: the parameter table (Markdown)
+if __name__ == "__main__":  # python -m deepprompt_ros.server.service_logic: the parameter table (Markdown)
     print(parameters_markdown())

@@ -4,7 +4,7 @@ optionally a residual over a linear basis, μ_y(z, x) = Φ(x)(b + A z) + s·MLP(
 (``ModelConfig.decoder_basis``; the linear part alone is a PPCA-style ProMP in the latent).
 
 All tensors here are in *normalized* units (joint positions and low-dim contexts standardized
-with the training set's statistics); :mod:`deepprompt_ros.core.primitive` converts to and from
+with the training set's statistics); :mod:`deepprompt_ros.primitive.deep_promp` converts to and from
 radians. Shapes use B = batch, N = elements (via-points), T = query phases, d = joints,
 k = latent dimension, p = phase-feature dimension.
 """

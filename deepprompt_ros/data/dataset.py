@@ -361,21 +361,21 @@ def wam_shake(seed: int = 0, **kwargs) -> DemoDataset:
 
 def gen3_lite_reach(seed: int = 0, **kwargs) -> DemoDataset:
     """Reaching demonstrations on the Kinova Gen3 lite with the object position as context
-    (see :mod:`deepprompt_ros.core.reach`; imported lazily: it needs pinocchio)."""
-    from .reach import reach_demos
+    (see :mod:`deepprompt_ros.data.reach`; imported lazily: it needs pinocchio)."""
+    from deepprompt_ros.data.reach import reach_demos
 
     return reach_demos("gen3_lite", seed=seed, **kwargs)
 
 
 def _task_builtin(name: str):
-    """Lazy entry for a task of :mod:`deepprompt_ros.core.tasks` (which imports this module): its
+    """Lazy entry for a task of :mod:`deepprompt_ros.sim.tasks.registry` (which imports this module): its
     train split, ``make_task(name, seed=seed, **kwargs)``."""
     def generate(seed: int = 0, **kwargs) -> DemoDataset:
-        from .tasks import make_task
+        from deepprompt_ros.sim.tasks.registry import make_task
 
         return make_task(name, seed=seed, **kwargs)
 
-    generate.__doc__ = f"Train split of the PyBullet task '{name}' (see deepprompt_ros.core.tasks)."
+    generate.__doc__ = f"Train split of the PyBullet task '{name}' (see deepprompt_ros.sim.tasks.registry)."
     return generate
 
 

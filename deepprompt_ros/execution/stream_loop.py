@@ -9,8 +9,8 @@ Per control tick (period dt = 1 / control rate):
    change), joint-state staleness and the tracking-error bound are checked;
 3. ONE new sample, ``lookahead_ticks`` periods ahead, is computed: the phase clock gives
    x = τ(t), the dense grid of the executed mean gives the reference (q, q̇, q̈) at x
-   (:class:`~deepprompt_ros.core.server_logic.ExecutionReference`), and Ruckig
-   (:class:`~deepprompt_ros.core.streaming.RuckigStreamer`) turns it into a command within the
+   (:class:`~deepprompt_ros.server.service_logic.ExecutionReference`), and Ruckig
+   (:class:`~deepprompt_ros.execution.streamer.RuckigStreamer`) turns it into a command within the
    velocity, acceleration, jerk and position limits;
 4. every 1/trajectory_rate a snapshot of the buffered future samples goes to a second thread that
    builds the JointTrajectory message (slow in Python: ~0.1 ms per point) off the critical path.
@@ -45,8 +45,8 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
-from ..core.server_logic import Code, ExecutionPlan, RequestError, ServerConfig
-from ..core.streaming import JointLimits, RuckigStreamer, StreamStatus
+from deepprompt_ros.server.service_logic import Code, ExecutionPlan, RequestError, ServerConfig
+from deepprompt_ros.execution.streamer import JointLimits, RuckigStreamer, StreamStatus
 
 __all__ = ["Stage", "Outcome", "Progress", "MeasuredState", "Sample", "Snapshot", "ExecutionGoal",
            "ExecutionController", "StreamLoop", "LoopStats", "BrakeTail", "trajectory_points", "GcMonitor",

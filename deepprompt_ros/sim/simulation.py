@@ -29,7 +29,7 @@ from typing import NamedTuple, Sequence
 import numpy as np
 import pybullet as pb
 
-from deepprompt_ros.core.robots import (
+from deepprompt_ros.robots.spec import (
     GRAVITY,
     FramePose,
     RobotKinematics,
@@ -153,7 +153,7 @@ class Simulation:
     Parameters
     ----------
     robot : str or RobotSpec
-        A name accepted by :func:`~deepprompt_ros.core.robots.load_robot` (``"gen3_lite"``,
+        A name accepted by :func:`~deepprompt_ros.robots.spec.load_robot` (``"gen3_lite"``,
         ``"wam"``, ``"panda"``, ...) or a spec. The base is fixed at the world origin.
     timestep : float
         Physics step (s); default 1e-3 (1 kHz).

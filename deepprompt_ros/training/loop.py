@@ -2,8 +2,8 @@
 
 Command line::
 
-    python -m deepprompt_ros.core.train --data DATASET_DIR --config config/train.yaml --out models/NAME.safetensors
-    python -m deepprompt_ros.core.train --builtin bimodal_sine --config config/train_bimodal_sine.yaml --out ...
+    python -m deepprompt_ros.training.loop --data DATASET_DIR --config config/train.yaml --out models/NAME.safetensors
+    python -m deepprompt_ros.training.loop --builtin bimodal_sine --config config/train_bimodal_sine.yaml --out ...
 
 Objectives (``objective`` in the YAML):
 
@@ -35,10 +35,10 @@ from typing import Mapping, Sequence
 import numpy as np
 import torch
 
-from . import __version__
-from .checkpoint import Normalization, save_checkpoint
-from .dataset import DatasetError, DemoDataset, builtin_dataset, load_dataset
-from .model import DeepProMPNet, ModelConfig, bayesian_aggregate, gaussian_kl, phase_basis
+from deepprompt_ros import __version__
+from deepprompt_ros.model.checkpoint import Normalization, save_checkpoint
+from deepprompt_ros.data.dataset import DatasetError, DemoDataset, builtin_dataset, load_dataset
+from deepprompt_ros.model.network import DeepProMPNet, ModelConfig, bayesian_aggregate, gaussian_kl, phase_basis
 
 OBJECTIVES = ("paper", "np")
 CONSISTENCY_ENCODER = ("none", "coverage", "all")
@@ -628,7 +628,7 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="train", description="Train a DeepProMP on demonstrations.")
     src = ap.add_mutually_exclusive_group(required=True)
-    src.add_argument("--data", help="dataset folder of .npz/.csv demonstrations (see deepprompt_ros.core.dataset)")
+    src.add_argument("--data", help="dataset folder of .npz/.csv demonstrations (see deepprompt_ros.data.dataset)")
     src.add_argument("--builtin", help="built-in generated dataset: bimodal_sine | rhythmic_shake | wam_shake | "
                      "gen3_lite_reach, or a PyBullet task (core.tasks; full sets take minutes to generate): "
                      "reach | close_box | pour | kinova_pick_place")

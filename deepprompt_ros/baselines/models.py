@@ -64,14 +64,14 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from . import __version__
-from .checkpoint import FORMAT as DEEPPROMP_FORMAT
-from .checkpoint import Normalization, load_checkpoint, save_checkpoint
-from .dataset import DemoDataset
-from .model import ImageEncoder, _mlp_trunk, config_from_json, config_to_json, gaussian_kl, phase_features
-from .primitive import DeepProMP, LatentGaussian, check_images, check_phases, joint_list_text
-from .promp import ProMP
-from .train import TensorData, TrainConfig, fit_normalization, sample_subset_weights, to_tensors, train, validation_weights
+from deepprompt_ros import __version__
+from deepprompt_ros.model.checkpoint import FORMAT as DEEPPROMP_FORMAT
+from deepprompt_ros.model.checkpoint import Normalization, load_checkpoint, save_checkpoint
+from deepprompt_ros.data.dataset import DemoDataset
+from deepprompt_ros.model.network import ImageEncoder, _mlp_trunk, config_from_json, config_to_json, gaussian_kl, phase_features
+from deepprompt_ros.primitive.deep_promp import DeepProMP, LatentGaussian, check_images, check_phases, joint_list_text
+from deepprompt_ros.baselines.promp import ProMP
+from deepprompt_ros.training.loop import TensorData, TrainConfig, fit_normalization, sample_subset_weights, to_tensors, train, validation_weights
 
 __all__ = [
     "MovementPrimitiveModel", "DeepProMPModel", "ProMPModel", "CNMP", "CNMPIndep", "VAECNMP", "VAECNMPIndep",

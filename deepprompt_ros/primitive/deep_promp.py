@@ -16,8 +16,8 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 import torch
 
-from .checkpoint import Checkpoint, Normalization, load_checkpoint
-from .model import LOGVAR_MAX, DeepProMPNet, phase_basis, phase_features
+from deepprompt_ros.model.checkpoint import Checkpoint, Normalization, load_checkpoint
+from deepprompt_ros.model.network import LOGVAR_MAX, DeepProMPNet, phase_basis, phase_features
 
 
 def joint_list_text(names: Sequence[str]) -> str:

@@ -3,9 +3,9 @@
 A recording produces two outputs:
 
 * the **demonstration**, one ``.npz`` file in the dataset format of
-  :mod:`deepprompt_ros.core.dataset` (joint positions with time stamps, low-dimensional contexts,
+  :mod:`deepprompt_ros.data.dataset` (joint positions with time stamps, low-dimensional contexts,
   a few downsampled images), built by :class:`DemoBuffer` and written atomically by
-  :func:`~deepprompt_ros.core.dataset.save_demo`;
+  :func:`~deepprompt_ros.data.dataset.save_demo`;
 * the **raw messages**, a rosbag2 bag folder with MCAP storage written by :class:`BagWriter`::
 
       <bag_directory>/<name>/
@@ -38,7 +38,7 @@ from typing import NamedTuple, Sequence
 import numpy as np
 import yaml
 
-from .dataset import Demonstration, demo_from_arrays
+from deepprompt_ros.data.dataset import Demonstration, demo_from_arrays
 
 __all__ = [
     "RecordingError",

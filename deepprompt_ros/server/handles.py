@@ -15,7 +15,7 @@ the stored distribution by that handle (``Execute``, ``Blend``, ``Sample``). Thi
 
 Every distribution answers ``latent_at(x) -> (mean (T, k), var (T, k))``, so decoding a handle is
 the same code path for conditioned and blended handles
-(:meth:`deepprompt_ros.core.primitive.DeepProMP.decode_per_phase`).
+(:meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.decode_per_phase`).
 """
 from __future__ import annotations
 
@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Callable, Union
 import numpy as np
 
 if TYPE_CHECKING:  # torch-free import (the server validates its parameters before loading torch)
-    from .primitive import LatentGaussian
+    from deepprompt_ros.primitive.deep_promp import LatentGaussian
 
 __all__ = [
     "ConditionedLatent",

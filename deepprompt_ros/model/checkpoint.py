@@ -15,7 +15,7 @@ from typing import Mapping
 import numpy as np
 import torch
 
-from .model import DeepProMPNet, ModelConfig
+from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
 
 FORMAT = "deepprompt_ros.deepprompt/1"
 _MAGIC_MAX_HEADER = 100 * 1024 * 1024

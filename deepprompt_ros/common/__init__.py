@@ -1,0 +1,2 @@
+"""Small pieces every other subpackage shares (parameter specs, joint-list text); imports nothing
+of the package."""

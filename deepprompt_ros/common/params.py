@@ -1,0 +1,165 @@
+"""Parameters declared once (in the spirit of generate_parameter_library): name, type, default,
+description, inclusive range or allowed choices, unit.
+
+Every configurable thing of the package is a frozen dataclass whose fields are made with
+:func:`param`: the server's and the nodes' ROS parameters, and the training configuration. From the
+same declaration come the validation (:func:`check`, :func:`from_mapping`), the ROS parameter
+descriptors (``deepprompt_ros.ros.parameters``) and the documentation (:func:`markdown_table`,
+``docs/parameters.md``).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import numbers
+from typing import Any, Mapping, NamedTuple, Sequence, TypeVar
+
+__all__ = ["ConfigError", "ParamSpec", "param", "specs_of", "check", "coerce", "validate",
+           "from_mapping", "markdown_table"]
+
+TYPES = ("bool", "int", "double", "string", "double[]", "string[]")
+_PY_TYPES = {"bool": "bool", "int": "int", "float": "double", "str": "string",
+             "tuple[float, ...]": "double[]", "tuple[str, ...]": "string[]"}
+_EXPECTED = {"bool": "true or false", "int": "an integer", "double": "a number", "string": "a string",
+             "double[]": "a list of numbers", "string[]": "a list of strings"}
+
+
+class ConfigError(ValueError):
+    """Invalid parameters; the message names every bad one and what is expected."""
+
+
+class ParamSpec(NamedTuple):
+    """One parameter. ``type`` is one of ``bool int double string double[] string[]``; ``min`` /
+    ``max`` bound numbers (and every element of a list) inclusively, ``None`` = unbounded;
+    ``choices`` are the allowed values of a string."""
+
+    name: str
+    type: str
+    default: Any
+    description: str
+    min: float | None = None
+    max: float | None = None
+    choices: tuple[str, ...] | None = None
+    unit: str = ""
+
+
+def param(default, description: str, *, min=None, max=None, choices=None, unit: str = "", type: str = ""):
+    """A dataclass field that is a parameter (see :func:`specs_of`). ``type`` is needed only when
+    the field's annotation does not say it (e.g. ``Any``)."""
+    meta = {"description": description, "min": min, "max": max,
+            "choices": None if choices is None else tuple(choices), "unit": unit, "type": type}
+    if isinstance(default, (list, tuple)):
+        return dataclasses.field(default_factory=lambda d=tuple(default): d, metadata=meta)
+    return dataclasses.field(default=default, metadata=meta)
+
+
+T = TypeVar("T")
+
+
+def specs_of(cls) -> tuple[ParamSpec, ...]:
+    """The :class:`ParamSpec` of every field of the dataclass ``cls`` made with :func:`param`."""
+    specs = []
+    for f in dataclasses.fields(cls):
+        if "description" not in f.metadata:
+            continue
+        m = f.metadata
+        kind = m["type"] or _PY_TYPES.get(f.type if isinstance(f.type, str) else f.type.__name__)
+        if kind not in TYPES:
+            raise TypeError(f"{cls.__name__}.{f.name}: parameter type {f.type!r} is not one of {TYPES}")
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        specs.append(ParamSpec(f.name, kind, default, m["description"], m["min"], m["max"], m["choices"],
+                               m["unit"]))
+    return tuple(specs)
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, numbers.Real) and not isinstance(v, bool) and type(v).__name__ != "bool_"
+
+
+def check(spec: ParamSpec, value) -> str:
+    """``''`` when ``value`` is valid for ``spec``, else a message saying what is expected."""
+    unit = f" {spec.unit}" if spec.unit else ""
+    bad = f"{spec.name} = {value!r}: expected {_EXPECTED[spec.type]}"
+    if spec.type == "bool":
+        ok = isinstance(value, bool) or type(value).__name__ == "bool_"
+    elif spec.type == "int":
+        ok = isinstance(value, numbers.Integral) and _is_number(value)
+    elif spec.type == "double":
+        ok = _is_number(value)
+    elif spec.type == "string":
+        ok = isinstance(value, str)
+    else:
+        elem = _is_number if spec.type == "double[]" else (lambda v: isinstance(v, str))
+        ok = isinstance(value, (list, tuple)) and all(elem(v) for v in value)
+    if not ok:
+        return bad
+    numbers_ = [value] if spec.type in ("int", "double") else list(value) if spec.type == "double[]" else []
+    for v in numbers_:
+        if not math.isfinite(float(v)):
+            return f"{spec.name} = {value!r}: expected finite numbers"
+        lo = -math.inf if spec.min is None else spec.min
+        hi = math.inf if spec.max is None else spec.max
+        if not lo <= float(v) <= hi:
+            return f"{spec.name} = {value!r}{unit}: expected a value in [{lo:g}, {hi:g}]{unit}"
+    if spec.choices is not None and value not in spec.choices:
+        return f"{spec.name} = {value!r}: expected one of {', '.join(repr(c) for c in spec.choices)}"
+    return ""
+
+
+def coerce(spec: ParamSpec, value):
+    """``value`` (already :func:`check` ed) in the field's Python type."""
+    if spec.type == "double":
+        return float(value)
+    if spec.type == "int":
+        return int(value)
+    if spec.type == "bool":
+        return bool(value)
+    if spec.type == "double[]":
+        return tuple(float(v) for v in value)
+    if spec.type == "string[]":
+        return tuple(value)
+    return value
+
+
+def validate(obj) -> None:
+    """Check every parameter field of the dataclass instance ``obj`` (call from ``__post_init__``);
+    raises :class:`ConfigError` naming every invalid one."""
+    errors = [e for s in specs_of(type(obj)) if (e := check(s, getattr(obj, s.name)))]
+    if errors:
+        raise ConfigError(f"invalid {type(obj).__name__} parameters:\n  " + "\n  ".join(errors))
+
+
+def from_mapping(cls: type[T], values: Mapping[str, Any]) -> T:
+    """An instance of the dataclass ``cls`` from {name: value}; unknown names and invalid values are
+    all reported at once in one :class:`ConfigError`."""
+    specs = {s.name: s for s in specs_of(cls)}
+    errors = [f"unknown parameter '{n}'; known: {', '.join(sorted(specs))}"
+              for n in sorted(set(values) - set(specs))]
+    ok = {}
+    for name, value in values.items():
+        if name in specs:
+            err = check(specs[name], value)
+            if err:
+                errors.append(err)
+            else:
+                ok[name] = coerce(specs[name], value)
+    if errors:
+        raise ConfigError(f"invalid {cls.__name__} parameters:\n  " + "\n  ".join(errors))
+    return cls(**ok)
+
+
+def markdown_table(specs: Sequence[ParamSpec]) -> str:
+    """Markdown table of ``specs`` (name, type, default, range or choices, description)."""
+    rows = ["| parameter | type | default | range | description |", "|---|---|---|---|---|"]
+    for p in specs:
+        if p.choices:
+            rng = " / ".join(f"`{c}`" for c in p.choices)
+        elif p.min is not None or p.max is not None:
+            lo = "-inf" if p.min is None else f"{p.min:g}"
+            hi = "inf" if p.max is None else f"{p.max:g}"
+            rng = f"[{lo}, {hi}]" + (f" {p.unit}" if p.unit else "")
+        else:
+            rng = p.unit
+        default = list(p.default) if isinstance(p.default, tuple) else p.default
+        rows.append(f"| `{p.name}` | {p.type} | `{default!r}` | {rng} | {p.description} |")
+    return "\n".join(rows)
