@@ -110,7 +110,7 @@ def primitives_file(tmp: pathlib.Path, model: str | None = None, steps: int = 30
 # ------------------------------------------------------------------------------------------------
 def _realtime(priority: int, who: str) -> str:
     """SCHED_FIFO ``priority`` for this process (0: none asked); '' if granted, else why not (printed)."""
-    from deepprompt_ros.execution.stream_loop import set_fifo_priority
+    from deepprompt_ros.ros.fastpath.realtime import set_fifo_priority
 
     why = set_fifo_priority(priority) if priority > 0 else "normal scheduling asked"
     if why and priority > 0:

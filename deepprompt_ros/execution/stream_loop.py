@@ -35,10 +35,7 @@ from __future__ import annotations
 
 import collections
 import enum
-import gc
 import math
-import os
-import sys
 import threading
 import time
 from typing import Callable, NamedTuple
@@ -49,8 +46,7 @@ from deepprompt_ros.server.service_logic import Code, ExecutionPlan, RequestErro
 from deepprompt_ros.execution.streamer import JointLimits, RuckigStreamer, StreamStatus
 
 __all__ = ["Stage", "Outcome", "Progress", "MeasuredState", "Sample", "Snapshot", "ExecutionGoal",
-           "ExecutionController", "StreamLoop", "LoopStats", "BrakeTail", "trajectory_points", "GcMonitor",
-           "name_os_thread", "set_switch_interval", "set_fifo_priority"]
+           "ExecutionController", "StreamLoop", "LoopStats", "BrakeTail", "trajectory_points"]
 
 
 class Stage(enum.Enum):
@@ -433,6 +429,11 @@ class StreamLoop:
         thread; it reads the newest robot state and calls :meth:`update_measured` (the node
         takes joint_states from its subscription here instead of through an executor callback:
         at 1 kHz, executor dispatch alone costs most of a CPU core in Python).
+    thread_setup : callable (name, fifo_priority) -> str, or None
+        Called first in each thread the loop starts: ``("control_loop", config.realtime_priority)``
+        and ``("jtc_publisher", 0)``; it names the thread and asks for SCHED_FIFO when the priority
+        is > 0, and returns '' or why the priority was refused (:attr:`priority_error`). The nodes
+        pass :func:`deepprompt_ros.ros.fastpath.realtime.prepare_thread`; None: nothing is changed.
     """
 
     idle_poll = 0.01
@@ -442,7 +443,8 @@ class StreamLoop:
 
     def __init__(self, controller: ExecutionController, config: ServerConfig,
                  publish_command: Callable | None = None, publish_trajectory: Callable | None = None,
-                 on_error: Callable[[str], None] = lambda msg: None, poll_measured: Callable | None = None):
+                 on_error: Callable[[str], None] = lambda msg: None, poll_measured: Callable | None = None,
+                 thread_setup: Callable[[str, int], str] | None = None):
         self.ctl = controller
         self.config = config
         self.dt = controller.dt
@@ -450,6 +452,7 @@ class StreamLoop:
         self._pub_traj = publish_trajectory
         self._on_error = on_error
         self._poll = poll_measured
+        self._thread_setup = thread_setup or (lambda name, fifo_priority: "")
         self._measured: MeasuredState | None = None
         self._commands: collections.deque = collections.deque()
         self._wake = threading.Event()
@@ -578,15 +581,8 @@ class StreamLoop:
         self.tick()
         self.stats.max_tick_s = max(self.stats.max_tick_s, time.perf_counter() - t0)
 
-    def _set_priority(self) -> None:
-        """SCHED_FIFO at ``realtime_priority`` for the calling thread (the control thread)."""
-        prio = self.config.realtime_priority
-        if prio > 0:
-            self.priority_error = set_fifo_priority(prio)
-
     def _run(self) -> None:
-        name_os_thread("control_loop")
-        self._set_priority()
+        self.priority_error = self._thread_setup("control_loop", self.config.realtime_priority)
         self.started.set()
         dt = self.dt
         spin = self.config.spin_wait
@@ -630,7 +626,7 @@ class StreamLoop:
         self.ctl.buffer.clear()
 
     def _traj_worker(self) -> None:
-        name_os_thread("jtc_publisher")
+        self._thread_setup("jtc_publisher", 0)
         while not self._stop.is_set():
             with self._traj_cv:
                 while self._traj_pending is None and not self._stop.is_set():
@@ -642,80 +638,6 @@ class StreamLoop:
                 self._pub_traj(snap)
             except Exception as exc:
                 self._on_error(f"trajectory publish failed: {exc!r}")
-
-
-class GcMonitor:
-    """Counts the interpreter's cyclic garbage collections and the time they took (``gc.callbacks``).
-
-    A collection holds the interpreter lock: a full one over a node's start-up objects (torch,
-    numpy, rclpy, the models: ~190 000 objects in primitive_server) took 50-220 ms here, a stall of
-    every thread. Nodes therefore call ``gc.freeze()`` once started (:func:`freeze_startup_objects`),
-    after which collections only scan what was allocated since (~1 ms at most here).
-    """
-
-    def __init__(self):
-        self.count = [0, 0, 0]      # per generation
-        self.total_s = 0.0
-        self.max_s = 0.0
-        self._t0 = 0.0
-        gc.callbacks.append(self._callback)
-
-    def _callback(self, phase: str, info: dict) -> None:
-        if phase == "start":
-            self._t0 = time.perf_counter()
-            return
-        dt = time.perf_counter() - self._t0
-        self.count[info["generation"]] += 1
-        self.total_s += dt
-        self.max_s = max(self.max_s, dt)
-
-    def reset(self) -> None:
-        self.count, self.total_s, self.max_s = [0, 0, 0], 0.0, 0.0
-
-    def close(self) -> None:
-        if self._callback in gc.callbacks:
-            gc.callbacks.remove(self._callback)
-
-    def summary(self) -> str:
-        return (f"{sum(self.count)} garbage collections (generations 0/1/2: {'/'.join(map(str, self.count))}), "
-                f"{self.total_s * 1e3:.1f} ms in total, longest {self.max_s * 1e3:.2f} ms")
-
-
-def freeze_startup_objects() -> int:
-    """Collect once, then move every object alive to the permanent generation (``gc.freeze``):
-    later collections skip them (see :class:`GcMonitor`). Returns the number of objects frozen."""
-    gc.collect()
-    gc.freeze()
-    return gc.get_freeze_count()
-
-
-def name_os_thread(name: str) -> None:
-    """Give the calling thread ``name`` (<= 15 bytes) in the OS too (``top -H``, /proc/<pid>/task/*/comm),
-    so that per-thread CPU can be read from outside; Linux only, silently nothing elsewhere."""
-    try:
-        import ctypes
-
-        ctypes.CDLL(None).prctl(15, name.encode()[:15], 0, 0, 0)  # PR_SET_NAME
-    except (OSError, AttributeError):
-        pass
-
-
-def set_fifo_priority(priority: int) -> str:
-    """SCHED_FIFO ``priority`` for the calling thread; '' or why it was refused (then unchanged)."""
-    if not hasattr(os, "sched_setscheduler"):
-        return "SCHED_FIFO is not available on this platform; normal scheduling"
-    try:
-        os.sched_setscheduler(threading.get_native_id(), os.SCHED_FIFO, os.sched_param(priority))
-    except (OSError, PermissionError) as exc:
-        return f"SCHED_FIFO priority {priority} refused ({exc}); normal scheduling"
-    return ""
-
-
-def set_switch_interval(seconds: float) -> float:
-    """sys.setswitchinterval(seconds); returns the previous value."""
-    old = sys.getswitchinterval()
-    sys.setswitchinterval(seconds)
-    return old
 
 
 class BrakeTail:

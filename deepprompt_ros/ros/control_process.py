@@ -42,7 +42,8 @@ import time  # noqa: E402
 from multiprocessing.connection import Connection  # noqa: E402
 
 from deepprompt_ros.server.service_logic import Code, RequestError  # noqa: E402
-from deepprompt_ros.execution.stream_loop import ExecutionGoal, Outcome, Stage, name_os_thread  # noqa: E402
+from deepprompt_ros.execution.stream_loop import ExecutionGoal, Outcome, Stage  # noqa: E402
+from deepprompt_ros.ros.fastpath import realtime  # noqa: E402
 
 __all__ = ["ControlProcess", "main"]
 
@@ -98,7 +99,7 @@ class ControlProcess:
         self._reader.start()
 
     def _read(self, conn: Connection, proc: subprocess.Popen) -> None:
-        name_os_thread("control_link")
+        realtime.name_os_thread("control_link")
         try:
             while True:
                 self._handle(conn.recv())
@@ -256,11 +257,7 @@ def _child(fd: int, parent_pid: int) -> int:
     cfg = init["cfg"]
     warnings = []
     if cfg.control_cpu >= 0:  # before any thread exists: all inherit it
-        try:
-            os.sched_setaffinity(0, {cfg.control_cpu})
-        except (OSError, ValueError) as exc:
-            warnings.append(f"control_cpu {cfg.control_cpu} refused ({exc}); the control process runs on any "
-                            f"of CPUs {sorted(os.sched_getaffinity(0))}")
+        warnings.append(realtime.set_cpu_affinity(cfg.control_cpu, "the control process"))
     if cfg.realtime_priority > 0:
         # Every thread of this process at SCHED_FIFO, set here before rclpy (its import starts two
         # threads), DDS and the loop create theirs (they inherit it): a normal-priority thread
@@ -268,18 +265,15 @@ def _child(fd: int, parent_pid: int) -> int:
         # real-time control thread waits for that lock (priority inversion). The other threads sleep
         # almost always (status every STATUS_PERIOD, the link, the JointTrajectory snapshots); the
         # control thread sets its own priority again.
-        from deepprompt_ros.execution.stream_loop import set_fifo_priority
-
-        set_fifo_priority(cfg.realtime_priority)  # refused: the control thread reports it
+        realtime.set_fifo_priority(cfg.realtime_priority)  # refused: the control thread reports it
 
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
     from deepprompt_ros.ros.loop_io import LoopIO
-    from deepprompt_ros.execution.stream_loop import (ExecutionController, StreamLoop, freeze_startup_objects,
-                                                set_switch_interval)
+    from deepprompt_ros.execution.stream_loop import ExecutionController, StreamLoop
 
-    set_switch_interval(cfg.gil_switch_interval)
+    realtime.set_switch_interval(cfg.gil_switch_interval)
     rclpy.init(args=[], signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node(init["node_name"], namespace=init["namespace"], start_parameter_services=False)
     log = node.get_logger()
@@ -287,7 +281,7 @@ def _child(fd: int, parent_pid: int) -> int:
                 init["joint_states_topic"])
     loop = StreamLoop(ExecutionController(init["limits"], init["dt"], cfg), cfg, io.publish_command,
                       io.publish_trajectory, on_error=lambda m: log.error(m, throttle_duration_sec=1.0),
-                      poll_measured=io.poll_joint_state)
+                      poll_measured=io.poll_joint_state, thread_setup=realtime.prepare_thread)
     io.on_measured = loop.update_measured
     goals: dict[int, _LinkedGoal] = {}
     wake, stop = threading.Event(), threading.Event()
@@ -298,7 +292,7 @@ def _child(fd: int, parent_pid: int) -> int:
             conn.send(msg)
 
     def receive() -> None:
-        name_os_thread("link_reader")
+        realtime.name_os_thread("link_reader")
         try:
             while True:
                 msg = conn.recv()
@@ -321,7 +315,7 @@ def _child(fd: int, parent_pid: int) -> int:
     loop.start(threaded=True)
     loop.started.wait(5.0)
     threading.Thread(target=receive, name="link_reader", daemon=True).start()
-    freeze_startup_objects()
+    realtime.freeze_startup_objects()
     try:
         send(("ready", os.getpid(), "; ".join(w for w in (*warnings, loop.priority_error) if w)))  # warnings
         while not stop.is_set():

@@ -67,8 +67,8 @@ from deepprompt_ros.server import service_logic as sl
 from deepprompt_ros.ros import conversions as conv
 from deepprompt_ros.ros.control_process import ControlProcess
 from deepprompt_ros.ros.loop_io import LoopIO, TrajectorySerializer
-from deepprompt_ros.execution.stream_loop import (ExecutionController, ExecutionGoal, GcMonitor, StreamLoop,
-                                            freeze_startup_objects, name_os_thread, set_switch_interval)
+from deepprompt_ros.execution.stream_loop import ExecutionController, ExecutionGoal, StreamLoop
+from deepprompt_ros.ros.fastpath import realtime
 
 __all__ = ["PrimitiveServer", "TrajectorySerializer", "main"]
 
@@ -80,7 +80,7 @@ class PrimitiveServer(Node):
         super().__init__("primitive_server", **kwargs)
         log = self.get_logger()
         self.cfg = cfg = self._read_parameters()
-        set_switch_interval(cfg.gil_switch_interval)
+        realtime.set_switch_interval(cfg.gil_switch_interval)
         from deepprompt_ros.robots.spec import load_robot  # pinocchio: after the parameters are checked
 
         try:
@@ -119,7 +119,8 @@ class PrimitiveServer(Node):
             self.loop = StreamLoop(ExecutionController(self.limits, 1.0 / rate, cfg), cfg, self._io.publish_command,
                                    self._io.publish_trajectory,
                                    on_error=lambda m: log.error(m, throttle_duration_sec=1.0),
-                                   poll_measured=self._io.poll_joint_state)
+                                   poll_measured=self._io.poll_joint_state,
+                                   thread_setup=realtime.prepare_thread)
             self._io.on_measured = self.loop.update_measured
         elif not self.loop.wait_ready(60.0):
             # its publishers exist before this node offers Execute (subscribers discover them meanwhile)
@@ -150,7 +151,7 @@ class PrimitiveServer(Node):
                                     cancel_callback=lambda goal: CancelResponse.ACCEPT)
         if cfg.loop_mode == "timer":
             self.create_timer(1.0 / rate, self.loop.timer_tick, callback_group=MutuallyExclusiveCallbackGroup())
-        self.gc = GcMonitor()
+        self.gc = realtime.GcMonitor()
         if self._in_process:
             self.loop.start(threaded=cfg.loop_mode == "thread")
             if cfg.loop_mode == "thread":
@@ -330,7 +331,7 @@ class PrimitiveServer(Node):
 
     def _serve(self) -> None:
         """Service thread: wait on the service handles, answer each request in turn."""
-        name_os_thread("services")
+        realtime.name_os_thread("services")
         services, wake, ctx = self._srv_list, self._srv_wake, self.context
         wait_set = _rclpy.WaitSet(0, 1, 0, 0, len(services), 0, ctx.handle)  # 1 guard, n services
         while not self._srv_stop.is_set() and ctx.ok():
@@ -380,7 +381,7 @@ def main(args=None) -> int:
     node, code = None, 0
     try:
         node = PrimitiveServer()
-        n = freeze_startup_objects()  # no collection scans them again (a full one took 50-220 ms)
+        n = realtime.freeze_startup_objects()  # no collection scans them again (see realtime.GcMonitor)
         node.gc.reset()
         node.get_logger().info(f"{n} start-up objects frozen (gc.freeze)")
         executor = MultiThreadedExecutor(num_threads=6)
