@@ -43,11 +43,14 @@ class ParamSpec(NamedTuple):
     unit: str = ""
 
 
-def param(default, description: str, *, min=None, max=None, choices=None, unit: str = "", type: str = ""):
+def param(default, description: str, *, min=None, max=None, choices=None, unit: str = "", type: str = "",
+          name: str = ""):
     """A dataclass field that is a parameter (see :func:`specs_of`). ``type`` is needed only when
-    the field's annotation does not say it (e.g. ``Any``)."""
+    the field's annotation does not say it (e.g. ``Any``); ``name`` only when the parameter's name
+    is not the field's (ROS parameter names may hold dots: field ``camera_width``, parameter
+    ``camera.width``)."""
     meta = {"description": description, "min": min, "max": max,
-            "choices": None if choices is None else tuple(choices), "unit": unit, "type": type}
+            "choices": None if choices is None else tuple(choices), "unit": unit, "type": type, "name": name}
     if isinstance(default, (list, tuple)):
         return dataclasses.field(default_factory=lambda d=tuple(default): d, metadata=meta)
     return dataclasses.field(default=default, metadata=meta)
@@ -58,6 +61,11 @@ T = TypeVar("T")
 
 def specs_of(cls) -> tuple[ParamSpec, ...]:
     """The :class:`ParamSpec` of every field of the dataclass ``cls`` made with :func:`param`."""
+    return tuple(spec for _, spec in _param_fields(cls))
+
+
+def _param_fields(cls) -> list[tuple[str, ParamSpec]]:
+    """(field name, :class:`ParamSpec`) of every parameter field of the dataclass ``cls``."""
     specs = []
     for f in dataclasses.fields(cls):
         if "description" not in f.metadata:
@@ -67,9 +75,9 @@ def specs_of(cls) -> tuple[ParamSpec, ...]:
         if kind not in TYPES:
             raise TypeError(f"{cls.__name__}.{f.name}: parameter type {f.type!r} is not one of {TYPES}")
         default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
-        specs.append(ParamSpec(f.name, kind, default, m["description"], m["min"], m["max"], m["choices"],
-                               m["unit"]))
-    return tuple(specs)
+        specs.append((f.name, ParamSpec(m.get("name") or f.name, kind, default, m["description"], m["min"],
+                                        m["max"], m["choices"], m["unit"])))
+    return specs
 
 
 def _is_number(v) -> bool:
@@ -124,7 +132,7 @@ def coerce(spec: ParamSpec, value):
 def validate(obj) -> None:
     """Check every parameter field of the dataclass instance ``obj`` (call from ``__post_init__``);
     raises :class:`ConfigError` naming every invalid one."""
-    errors = [e for s in specs_of(type(obj)) if (e := check(s, getattr(obj, s.name)))]
+    errors = [e for field, s in _param_fields(type(obj)) if (e := check(s, getattr(obj, field)))]
     if errors:
         raise ConfigError(f"invalid {type(obj).__name__} parameters:\n  " + "\n  ".join(errors))
 
@@ -132,17 +140,18 @@ def validate(obj) -> None:
 def from_mapping(cls: type[T], values: Mapping[str, Any]) -> T:
     """An instance of the dataclass ``cls`` from {name: value}; unknown names and invalid values are
     all reported at once in one :class:`ConfigError`."""
-    specs = {s.name: s for s in specs_of(cls)}
-    errors = [f"unknown parameter '{n}'; known: {', '.join(sorted(specs))}"
-              for n in sorted(set(values) - set(specs))]
+    fields = {s.name: (field, s) for field, s in _param_fields(cls)}
+    errors = [f"unknown parameter '{n}'; known: {', '.join(sorted(fields))}"
+              for n in sorted(set(values) - set(fields))]
     ok = {}
     for name, value in values.items():
-        if name in specs:
-            err = check(specs[name], value)
+        if name in fields:
+            field, spec = fields[name]
+            err = check(spec, value)
             if err:
                 errors.append(err)
             else:
-                ok[name] = coerce(specs[name], value)
+                ok[field] = coerce(spec, value)
     if errors:
         raise ConfigError(f"invalid {cls.__name__} parameters:\n  " + "\n  ".join(errors))
     return cls(**ok)
