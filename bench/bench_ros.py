@@ -417,7 +417,7 @@ def stream_metrics(data, dt):
 
 def limit_check(data, dt, limits):
     """Violations in the commanded stream (segments between lost messages) and measured states."""
-    from deepprompt_ros.execution.streamer import check_limits
+    from deepprompt_ros.execution.limits import check_limits
 
     q, qd, stamp = data["q"], data["qd"], data["stamp"]
     viol, worst = 0, {}

@@ -48,8 +48,8 @@ _EXPORTS = {
     # robots, simulation and streaming
     "RobotSpec": "robots.spec", "load_robot": "robots.spec", "RobotKinematics": "robots.spec",
     "Simulation": "sim.simulation",
-    "PhaseClock": "execution.streamer", "RuckigStreamer": "execution.streamer",
-    "JointLimits": "execution.streamer", "check_limits": "execution.streamer",
+    "PhaseClock": "execution.phase_clock", "RuckigStreamer": "execution.ruckig_streamer",
+    "JointLimits": "execution.limits", "check_limits": "execution.limits",
 }
 __all__ = sorted(_EXPORTS)
 

@@ -26,7 +26,7 @@ from deepprompt_ros.model.checkpoint import Normalization, save_checkpoint
 from deepprompt_ros.data.dataset import Demonstration, DemoDataset
 from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
 from deepprompt_ros.robots.spec import load_robot
-from deepprompt_ros.execution.streamer import check_limits
+from deepprompt_ros.execution.limits import check_limits
 from deepprompt_ros.training.loop import TrainConfig, train
 from deepprompt_ros.ros import conversions as conv
 from deepprompt_ros.ros.testing import NodeProcess, RosTestClient, isolated_ros_env

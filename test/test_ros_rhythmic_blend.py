@@ -20,7 +20,7 @@ from rclpy.action import ActionClient
 
 from deepprompt_ros.server import service_logic as sl
 from deepprompt_ros.robots.spec import load_robot
-from deepprompt_ros.execution.streamer import check_limits
+from deepprompt_ros.execution.limits import check_limits
 from deepprompt_ros.ros import conversions as conv
 from deepprompt_ros.ros.testing import JointStateTap, NodeProcess, RosTestClient, isolated_ros_env
 

@@ -17,7 +17,7 @@ from deepprompt_ros.server import service_logic as sl
 from deepprompt_ros.model.checkpoint import Normalization, save_checkpoint
 from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
 from deepprompt_ros.robots.spec import load_robot
-from deepprompt_ros.execution.streamer import check_limits
+from deepprompt_ros.execution.limits import check_limits
 from deepprompt_ros.execution.stream_loop import (BrakeTail, ExecutionController, ExecutionGoal, MeasuredState, Stage,
                                             trajectory_points)
 

@@ -1,4 +1,5 @@
-"""Tests of deepprompt_ros.execution.streamer: phase clock, reference derivatives, and the Ruckig
+"""Tests of deepprompt_ros.execution (limits, phase_clock, reference, braking, ruckig_streamer):
+phase clock, reference derivatives, and the Ruckig
 streamer with real ruckig (no mocks). Limits are checked on every produced sample with
 check_limits: |qd| <= v, |qdd| <= a per sample and |Δq|/dt <= v, |Δqd|/dt <= a,
 |Δqdd|/dt <= j between successive samples (finite-difference jerk of the reported
@@ -8,16 +9,11 @@ import math
 import numpy as np
 import pytest
 
-from deepprompt_ros.execution.streamer import (
-    JointLimits,
-    PhaseClock,
-    RuckigStreamer,
-    StreamStatus,
-    _brake_joint,
-    check_limits,
-    clock_reference,
-    reference_state,
-)
+from deepprompt_ros.execution.braking import brake_joint
+from deepprompt_ros.execution.limits import JointLimits, check_limits
+from deepprompt_ros.execution.phase_clock import PhaseClock
+from deepprompt_ros.execution.reference import clock_reference, reference_state
+from deepprompt_ros.execution.ruckig_streamer import RuckigStreamer, StreamStatus
 
 DT = 0.001
 LIMITS = JointLimits(lower=[-1.0, -2.0, -0.5], upper=[1.0, 2.0, 0.5],
@@ -205,11 +201,11 @@ def test_brake_profile_stops_within_limits_and_its_extrema_bound_the_motion():
         vmax = V - a0 * a0 / (2 * J)
         v0 = rng.uniform(-vmax, vmax)
         q = rng.uniform(-1, 1)
-        lo, hi, _, _, _ = _brake_joint(q, v0, a0, A, J, 0.0)
+        lo, hi, _, _, _ = brake_joint(q, v0, a0, A, J, 0.0)
         state = (q, v0, a0)
         qs, vs, accs = [q], [v0], [a0]
         for _ in range(800):
-            lo_k, hi_k, *state = _brake_joint(*state, A, J, DT)
+            lo_k, hi_k, *state = brake_joint(*state, A, J, DT)
             qs.append(state[0])
             vs.append(state[1])
             accs.append(state[2])

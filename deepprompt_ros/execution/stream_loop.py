@@ -10,7 +10,7 @@ Per control tick (period dt = 1 / control rate):
 3. ONE new sample, ``lookahead_ticks`` periods ahead, is computed: the phase clock gives
    x = τ(t), the dense grid of the executed mean gives the reference (q, q̇, q̈) at x
    (:class:`~deepprompt_ros.server.service_logic.ExecutionReference`), and Ruckig
-   (:class:`~deepprompt_ros.execution.streamer.RuckigStreamer`) turns it into a command within the
+   (:class:`~deepprompt_ros.execution.ruckig_streamer.RuckigStreamer`) turns it into a command within the
    velocity, acceleration, jerk and position limits;
 4. every 1/trajectory_rate a snapshot of the buffered future samples goes to a second thread that
    builds the JointTrajectory message (slow in Python: ~0.1 ms per point) off the critical path.
@@ -43,7 +43,8 @@ from typing import Callable, NamedTuple
 import numpy as np
 
 from deepprompt_ros.server.service_logic import Code, ExecutionPlan, RequestError, ServerConfig
-from deepprompt_ros.execution.streamer import JointLimits, RuckigStreamer, StreamStatus
+from deepprompt_ros.execution.limits import JointLimits
+from deepprompt_ros.execution.ruckig_streamer import RuckigStreamer, StreamStatus
 
 __all__ = ["Stage", "Outcome", "Progress", "MeasuredState", "Sample", "Snapshot", "ExecutionGoal",
            "ExecutionController", "StreamLoop", "LoopStats", "BrakeTail", "trajectory_points"]

@@ -24,7 +24,8 @@ import numpy as np
 
 from deepprompt_ros.server.handles import (BlendedLatent, ConditionedLatent, HandleLimitError, HandleStore, Schedule,
                       StoredDistribution, UnknownHandleError)
-from deepprompt_ros.execution.streamer import JointLimits, PhaseClock
+from deepprompt_ros.execution.limits import JointLimits
+from deepprompt_ros.execution.phase_clock import PhaseClock
 
 if TYPE_CHECKING:  # imported where models are loaded: parameters are checked without torch
     from deepprompt_ros.primitive.deep_promp import DeepProMP
