@@ -46,7 +46,7 @@ _EXPORTS = {
     # baseline
     "ProMP": "baselines.promp",
     # robots, simulation and streaming
-    "RobotSpec": "robots.spec", "load_robot": "robots.spec", "RobotKinematics": "robots.spec",
+    "RobotSpec": "robots.spec", "load_robot": "robots.spec", "RobotKinematics": "robots.kinematics",
     "Simulation": "sim.simulation",
     "PhaseClock": "execution.phase_clock", "RuckigStreamer": "execution.ruckig_streamer",
     "JointLimits": "execution.limits", "check_limits": "execution.limits",

@@ -18,7 +18,8 @@ from std_srvs.srv import SetBool, Trigger
 
 from deepprompt_ros.recording import recorder as rec
 from deepprompt_ros.data.dataset import load_dataset, load_demo
-from deepprompt_ros.robots.spec import RobotKinematics, load_robot
+from deepprompt_ros.robots.kinematics import RobotKinematics
+from deepprompt_ros.robots.spec import load_robot
 from deepprompt_ros.ros import conversions as conv
 from deepprompt_ros.ros.demo_recorder import PARAMETERS
 from deepprompt_ros.ros.testing import NodeProcess, RosTestClient, isolated_ros_env

@@ -20,7 +20,8 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import SetBool, Trigger
 
 from deepprompt_ros.data.dataset import load_dataset
-from deepprompt_ros.robots.spec import RobotKinematics, load_robot
+from deepprompt_ros.robots.kinematics import RobotKinematics
+from deepprompt_ros.robots.spec import load_robot
 from deepprompt_ros.training.loop import TrainConfig, train
 from deepprompt_ros.ros import conversions as conv
 from deepprompt_ros.ros.testing import JointStateTap, NodeProcess, RosTestClient, isolated_ros_env

@@ -169,7 +169,8 @@ def test_refinement_keeps_sample_cloud_on_via_points(reach):
 # ------------------------------------------------------------------ context conditioning
 def test_context_conditioning_reaches_towards_the_object(reach):
     from deepprompt_ros.data.reach import reach_demos
-    from deepprompt_ros.robots.spec import RobotKinematics, load_robot
+    from deepprompt_ros.robots.kinematics import RobotKinematics
+    from deepprompt_ros.robots.spec import load_robot
 
     kin = RobotKinematics(load_robot("gen3_lite"))
     held_out = reach_demos(n_demos=6, seed=777)

@@ -7,11 +7,13 @@ import pinocchio as pin
 import pybullet as pb
 import pytest
 
+from deepprompt_ros.robots.geometry import log3, quat_xyzw, rodrigues, rot_y, rot_z, rotation_from_quat_xyzw, skew
+from deepprompt_ros.robots.ik import solve_ik
+from deepprompt_ros.robots.kinematics import RobotKinematics
 from deepprompt_ros.robots.spec import (
     DEFAULT_ACCELERATION_PER_VELOCITY,
     DEFAULT_JERK_PER_ACCELERATION,
     GRAVITY,
-    RobotKinematics,
     available_robots,
     load_robot,
     urdf_path,
@@ -263,3 +265,50 @@ def test_every_joint_and_inertial_in_packaged_urdfs_cites_a_source(name, tag):
         if re.search(r"<joint name=|<inertial>", line):
             before = "\n".join(lines[max(0, i - 4):i])
             assert re.search(r"\[[KB]\d\]|Explicit negligible inertia", before), (name, i + 1, line)
+
+
+def test_geometry_conversions_agree_with_pinocchio_and_pybullet():
+    rng = np.random.default_rng(4)
+    for _ in range(200):
+        q = rng.standard_normal(4)
+        # quaternion -> matrix: PyBullet's own conversion, to the last bit (any norm)
+        R = rotation_from_quat_xyzw(q)
+        assert R.tobytes() == np.array(pb.getMatrixFromQuaternion(q), dtype=np.float64).reshape(3, 3).tobytes()
+        # matrix -> quaternion: the same rotation as Pinocchio's, up to the sign of q
+        quat = quat_xyzw(R)
+        ref = np.array(pin.Quaternion(R).coeffs())
+        assert np.isclose(np.linalg.norm(quat), 1.0)
+        assert min(np.abs(quat - ref).max(), np.abs(quat + ref).max()) < 1e-12
+        # log3 / rodrigues: inverse of each other
+        w = log3(R)
+        angle = np.linalg.norm(w)
+        assert np.allclose(rodrigues(w, angle), R, atol=1e-12)
+        assert np.allclose(pin.log3(R), w, atol=1e-9)
+    assert np.allclose(rot_z(0.3), pin.rpy.rpyToMatrix(0.0, 0.0, 0.3))
+    assert np.allclose(rot_y(-0.7), pin.rpy.rpyToMatrix(0.0, -0.7, 0.0))
+    v, u = rng.standard_normal(3), rng.standard_normal(3)
+    assert np.allclose(skew(v) @ u, np.cross(v, u))
+    # FramePose.quaternion_xyzw is the same conversion
+    pose = RobotKinematics(load_robot("wam")).forward_kinematics(load_robot("wam").home)
+    assert np.array_equal(pose.quaternion_xyzw, quat_xyzw(pose.rotation))
+
+
+@pytest.mark.parametrize("robot", ["wam", "gen3_lite"])
+def test_solve_ik_reaches_poses_inside_the_shrunk_limits(robot):
+    spec = load_robot(robot)
+    kin = RobotKinematics(spec)
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        q_goal = spec.clip_positions(spec.home + rng.uniform(-0.3, 0.3, spec.n_joints))
+        pose = kin.forward_kinematics(q_goal)
+        res = solve_ik(kin, pose.position, spec.home, rotation=pose.rotation)
+        assert res.position_error < 1e-4 and res.angle_error < 1e-3
+        assert np.all(res.q >= spec.lower + 0.05 - 1e-12) and np.all(res.q <= spec.upper - 0.05 + 1e-12)
+        reached = kin.forward_kinematics(res.q)
+        assert np.linalg.norm(reached.position - pose.position) == pytest.approx(res.position_error)
+        # position only, without null-space term or step cap: the error reported is the one of the
+        # configuration before the last step when the iterations run out
+        few = solve_ik(kin, pose.position, spec.home, iterations=1, rest_gain=0.0, max_step=None,
+                       measure_after_last_step=False)
+        start = kin.forward_kinematics(np.clip(spec.home, spec.lower + 0.05, spec.upper - 0.05)).position
+        assert few.position_error == pytest.approx(np.linalg.norm(pose.position - start))

@@ -5,7 +5,8 @@ import numpy as np
 import pybullet as pb
 import pytest
 
-from deepprompt_ros.robots.spec import RobotKinematics, load_robot
+from deepprompt_ros.robots.kinematics import RobotKinematics
+from deepprompt_ros.robots.spec import load_robot
 from deepprompt_ros.sim.simulation import CameraPose, Simulation
 
 

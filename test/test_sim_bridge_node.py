@@ -13,7 +13,8 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, JointState
 from std_srvs.srv import SetBool, Trigger
 
-from deepprompt_ros.robots.spec import RobotKinematics, load_robot
+from deepprompt_ros.robots.kinematics import RobotKinematics
+from deepprompt_ros.robots.spec import load_robot
 from deepprompt_ros.ros import conversions as conv
 from deepprompt_ros.ros.sim_bridge import OBJECT_FIELDS, PARAMETERS, ClockSerializer, CommandReader
 from deepprompt_ros.ros.testing import NodeProcess, RosTestClient, isolated_ros_env

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from deepprompt_ros.data.dataset import builtin_dataset, load_dataset
-from deepprompt_ros.robots.spec import RobotKinematics, load_robot
+from deepprompt_ros.robots.kinematics import RobotKinematics
+from deepprompt_ros.robots.spec import load_robot
 from deepprompt_ros.sim.tasks.registry import (
     SPLITS,
     TASKS,

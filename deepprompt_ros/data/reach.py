@@ -11,29 +11,15 @@ from __future__ import annotations
 import numpy as np
 
 from deepprompt_ros.data.dataset import Demonstration, DemoDataset
-from deepprompt_ros.robots.spec import RobotKinematics, load_robot
+from deepprompt_ros.robots.ik import solve_ik
+from deepprompt_ros.robots.kinematics import RobotKinematics
+from deepprompt_ros.robots.spec import load_robot
 
 
-def inverse_kinematics(kin: RobotKinematics, target, q0, iterations: int = 200, damping: float = 1e-2,
-                       tol: float = 1e-5) -> tuple[np.ndarray, float]:
-    """Position-only damped-least-squares IK (Wampler 1986): Δq = Jᵀ(JJᵀ + λ²I)⁻¹ e, clipped to limits.
-
-    Returns
-    -------
-    q : array, shape (n,); err : float, final position error (m)
-    """
-    spec = kin.spec
-    q = np.array(q0, dtype=np.float64)
-    lo, hi = spec.lower + 1e-3, spec.upper - 1e-3
-    err = np.inf
-    for _ in range(iterations):
-        e = np.asarray(target) - kin.forward_kinematics(q).position
-        err = float(np.linalg.norm(e))
-        if err < tol:
-            break
-        J = kin.jacobian(q)[:3]
-        q = np.clip(q + J.T @ np.linalg.solve(J @ J.T + damping**2 * np.eye(3), e), lo, hi)
-    return q, err
+# Position-only damped least squares: 1 mrad from the limits, 200 steps, λ = 0.01, 10 µm tolerance,
+# no null-space term, no step cap, the seed as given, the error as measured before the last step.
+_POSITION_IK = dict(margin=1e-3, iterations=200, damping=1e-2, tol_position=1e-5, rest_gain=0.0,
+                    max_step=None, clip_seed=False, measure_after_last_step=False)
 
 
 def _min_jerk(s):
@@ -56,12 +42,12 @@ def reach_demos(robot: str = "gen3_lite", n_demos: int = 120, n_points: int = 10
     demos = []
     while len(demos) < n_demos:
         obj = np.array([rng.uniform(*r) for r in box])
-        goal, err = inverse_kinematics(kin, obj + [0.0, 0.0, approach_height], spec.home)
+        goal, err, _ = solve_ik(kin, obj + [0.0, 0.0, approach_height], spec.home, **_POSITION_IK)
         if err > 1e-3:
             continue  # unreachable sample: the demonstrator would not show it
         lift = kin.forward_kinematics(spec.home).position * 0.5 + (obj + [0, 0, approach_height]) * 0.5
         lift[2] += rng.uniform(0.05, 0.15)
-        mid, err_mid = inverse_kinematics(kin, lift, spec.home)
+        mid, err_mid, _ = solve_ik(kin, lift, spec.home, **_POSITION_IK)
         if err_mid > 1e-3:
             continue
         # the wrist turns the gripper towards the object's bearing (a pure tool-axis rotation)

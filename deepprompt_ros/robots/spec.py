@@ -1,7 +1,8 @@
-"""Robot descriptions: joint limits, URDF files and Pinocchio kinematics / dynamics.
+"""Robot descriptions: joint limits and URDF files (:func:`load_robot` makes a :class:`RobotSpec`).
 
 Two arms ship with the package as URDF files written from the manufacturers' published numbers
-(``deepprompt_ros/resources/urdf``; every number is cited in the file):
+(``deepprompt_ros/resources/urdf``; every number is cited in the file; :func:`_packaged_urdf`
+finds them):
 
 * ``"gen3_lite"`` — Kinova Gen3 lite, 6 DoF, joints ``joint_1``..``joint_6`` (Kinova's names),
   end-effector frame ``tool_frame`` (between the gripper's fingertips).
@@ -16,7 +17,13 @@ URDF; the acceleration and jerk limits are the defaults documented at
 All limits are per joint, in the robot's units (rad, rad/s, rad/s², rad/s³, N·m; m and N for
 prismatic joints). Continuous joints (no position limit; Pinocchio represents their angle by
 (cos θ, sin θ), so nq != nv) are supported: their position limits are ``-inf`` / ``+inf`` and every
-function here takes and returns plain joint angles.
+function here takes and returns plain joint angles. Kinematics and dynamics of a spec:
+:class:`~deepprompt_ros.robots.kinematics.RobotKinematics`.
+
+Length: over 400 lines because the spec and the one function that makes it belong together: a
+:class:`RobotSpec` (about 200 lines of validated limits) is only ever built by :func:`load_robot`
+from a URDF read with Pinocchio plus the table of what a URDF cannot hold (home pose, end-effector
+frame, acceleration / jerk limits, control rate) — the table and the reading are the other half.
 """
 from __future__ import annotations
 
@@ -29,22 +36,25 @@ import pathlib
 import shutil
 import tempfile
 import xml.etree.ElementTree as ET
-from typing import NamedTuple, Sequence
+from typing import NamedTuple
 
 import numpy as np
 import pinocchio as pin
+
+from deepprompt_ros.common.joints import joint_list_text
 
 __all__ = [
     "GRAVITY",
     "DEFAULT_ACCELERATION_PER_VELOCITY",
     "DEFAULT_JERK_PER_ACCELERATION",
     "RobotSpec",
-    "FramePose",
-    "RobotKinematics",
+    "JointInfo",
     "available_robots",
     "load_robot",
     "urdf_path",
     "links_without_inertial",
+    "classify_joint",
+    "urdf_model",
 ]
 
 #: Standard gravity used by both Pinocchio and the simulation (m/s², along -z of the world).
@@ -63,19 +73,6 @@ _PACKAGE_ROBOTS = ("gen3_lite", "wam")
 # ----------------------------------------------------------------------------------------------
 # Robot specification
 # ----------------------------------------------------------------------------------------------
-def _joint_list_text(names: Sequence[str]) -> str:
-    """``joint_1..joint_6`` for numbered names, else a comma-separated list."""
-    names = list(names)
-    if len(names) >= 3:
-        stem = names[0].rstrip("0123456789")
-        tails = [n[len(stem):] for n in names]
-        if all(n.startswith(stem) for n in names) and all(t.isdigit() for t in tails):
-            nums = [int(t) for t in tails]
-            if nums == list(range(nums[0], nums[0] + len(nums))):
-                return f"{names[0]}..{names[-1]}"
-    return ", ".join(names)
-
-
 @dataclasses.dataclass(frozen=True, eq=False)
 class RobotSpec:
     """Everything a controller needs to know about an arm, without Pinocchio or PyBullet.
@@ -135,7 +132,7 @@ class RobotSpec:
             if arr.shape != (n,):
                 raise ValueError(
                     f"robot '{self.name}': {field} has shape {arr.shape}; expected ({n},), one value "
-                    f"per joint ({_joint_list_text(self.joint_names)})")
+                    f"per joint ({joint_list_text(self.joint_names)})")
             arr.setflags(write=False)
             object.__setattr__(self, field, arr)
         if np.any(np.isnan(self.lower)) or np.any(np.isnan(self.upper)) or np.any(self.lower > self.upper):
@@ -164,7 +161,7 @@ class RobotSpec:
 
     def joints_text(self) -> str:
         """The joint names for messages, e.g. ``"joint_1..joint_6"``."""
-        return _joint_list_text(self.joint_names)
+        return joint_list_text(self.joint_names)
 
     def to_dict(self) -> dict:
         """Plain-python description (lists and floats) for JSON model files; ``inf`` stays ``inf``."""
@@ -403,9 +400,11 @@ _EXTRAS: dict[str, _Extras] = {
 
 
 # ----------------------------------------------------------------------------------------------
-# Pinocchio model building (shared by load_robot and RobotKinematics)
+# Pinocchio model building (shared by load_robot and robots.kinematics.RobotKinematics)
 # ----------------------------------------------------------------------------------------------
-class _JointInfo(NamedTuple):
+class JointInfo(NamedTuple):
+    """One joint of a Pinocchio model: its name, index and positions in q (``idx_q``) and v (``idx_v``)."""
+
     name: str
     joint_id: int
     idx_q: int
@@ -413,20 +412,24 @@ class _JointInfo(NamedTuple):
     continuous: bool  # stored as (cos, sin) in Pinocchio
 
 
-def _classify_joint(model: pin.Model, jid: int, robot: str) -> _JointInfo:
+def classify_joint(model: pin.Model, jid: int, robot: str) -> JointInfo:
+    """:class:`JointInfo` of joint ``jid``; ValueError for joints other than revolute, prismatic and
+    continuous (``robot`` names the robot in the message)."""
     j = model.joints[jid]
     name = model.names[jid]
     if j.nq == 1 and j.nv == 1:
-        return _JointInfo(name, jid, j.idx_q, j.idx_v, False)
+        return JointInfo(name, jid, j.idx_q, j.idx_v, False)
     if j.nq == 2 and j.nv == 1:  # revolute unbounded (continuous)
-        return _JointInfo(name, jid, j.idx_q, j.idx_v, True)
+        return JointInfo(name, jid, j.idx_q, j.idx_v, True)
     raise ValueError(
         f"robot '{robot}': joint '{name}' is a {j.shortname()} (nq={j.nq}, nv={j.nv}); only "
         f"revolute, prismatic and continuous joints are supported")
 
 
 @functools.lru_cache(maxsize=32)
-def _full_model(path: str) -> pin.Model:
+def urdf_model(path: str) -> pin.Model:
+    """Pinocchio model of a URDF file with gravity :data:`GRAVITY` along -z (cached per path; do not
+    modify it: copy it)."""
     model = pin.buildModelFromUrdf(path)
     model.gravity.linear = np.array([0.0, 0.0, -GRAVITY])
     return model
@@ -448,7 +451,7 @@ def _reference_q(model: pin.Model, loader) -> np.ndarray:
     return q
 
 
-def _angle(qpin: np.ndarray, info: _JointInfo) -> float:
+def _angle(qpin: np.ndarray, info: JointInfo) -> float:
     if info.continuous:
         return math.atan2(qpin[info.idx_q + 1], qpin[info.idx_q])
     return float(qpin[info.idx_q])
@@ -466,9 +469,9 @@ def _default_ee_frame(model: pin.Model, last_joint: int) -> str:
 
 
 def _build_spec(name: str, path: pathlib.Path, loader) -> RobotSpec:
-    model = _full_model(str(path))
+    model = urdf_model(str(path))
     extras = _EXTRAS.get(name, _Extras(source="URDF limits; acceleration/jerk defaults"))
-    infos = [_classify_joint(model, jid, name) for jid in range(1, model.njoints)]
+    infos = [classify_joint(model, jid, name) for jid in range(1, model.njoints)]
     if extras.lock is None:
         lock_names = {i.name for i in infos
                       if "finger" in i.name.lower() or "gripper" in i.name.lower()}
@@ -561,168 +564,3 @@ def links_without_inertial(path: str | os.PathLike) -> frozenset[str]:
     give them 1 kg)."""
     root = ET.parse(str(path)).getroot()
     return frozenset(link.get("name") for link in root.iter("link") if link.find("inertial") is None)
-
-
-# ----------------------------------------------------------------------------------------------
-# Kinematics and dynamics
-# ----------------------------------------------------------------------------------------------
-class FramePose(NamedTuple):
-    """Pose of a frame in the world (base) frame.
-
-    Attributes
-    ----------
-    position : array, shape (3,)
-    rotation : array, shape (3, 3)
-        Columns are the frame's axes expressed in the world frame.
-    """
-
-    position: np.ndarray
-    rotation: np.ndarray
-
-    @property
-    def quaternion_xyzw(self) -> np.ndarray:
-        """Orientation as a unit quaternion (x, y, z, w), shape (4,)."""
-        return np.array(pin.Quaternion(self.rotation).coeffs(), dtype=np.float64)
-
-
-class RobotKinematics:
-    """Pinocchio model of a :class:`RobotSpec` (locked joints removed).
-
-    Every method takes joint values in ``spec.joint_names`` order (plain angles also for
-    continuous joints) and validates their count.
-
-    Parameters
-    ----------
-    spec : RobotSpec
-
-    Attributes
-    ----------
-    spec : RobotSpec
-    model : pinocchio.Model
-        Reduced model: only the controlled joints.
-    data : pinocchio.Data
-    """
-
-    def __init__(self, spec: RobotSpec):
-        self.spec = spec
-        full = _full_model(str(spec.urdf_path))
-        locked = dict(spec.locked_joints)
-        if locked:
-            qlock = pin.neutral(full)
-            lock_ids = []
-            for jname, value in locked.items():
-                if not full.existJointName(jname):
-                    raise ValueError(f"robot '{spec.name}': locked joint '{jname}' is not in {spec.urdf_path}")
-                info = _classify_joint(full, full.getJointId(jname), spec.name)
-                if info.continuous:
-                    qlock[info.idx_q:info.idx_q + 2] = (math.cos(value), math.sin(value))
-                else:
-                    qlock[info.idx_q] = value
-                lock_ids.append(info.joint_id)
-            model = pin.buildReducedModel(full, sorted(lock_ids), qlock)
-            model.gravity.linear = np.array([0.0, 0.0, -GRAVITY])
-        else:
-            model = full.copy()
-        self.model = model
-        self.data = model.createData()
-        infos = []
-        for jname in spec.joint_names:
-            if not model.existJointName(jname):
-                raise ValueError(f"robot '{spec.name}': joint '{jname}' is not in {spec.urdf_path}; "
-                                 f"the URDF has {[model.names[i] for i in range(1, model.njoints)]}")
-            infos.append(_classify_joint(model, model.getJointId(jname), spec.name))
-        if model.nv != spec.n_joints:
-            raise ValueError(f"robot '{spec.name}': the model has {model.nv} degrees of freedom after "
-                             f"locking {list(locked)}, but the spec lists {spec.n_joints} joints")
-        self._infos = tuple(infos)
-        self._idx_v = np.array([i.idx_v for i in infos])
-        self._plain_q = np.array([i.idx_q for i in infos if not i.continuous], dtype=int)
-        self._plain_j = np.array([k for k, i in enumerate(infos) if not i.continuous], dtype=int)
-        self._cont_q = np.array([i.idx_q for i in infos if i.continuous], dtype=int)
-        self._cont_j = np.array([k for k, i in enumerate(infos) if i.continuous], dtype=int)
-        self.ee_frame_id = self.frame_id(spec.ee_frame)
-        self._zero_v = np.zeros(model.nv)
-        self._qpin_buffer = pin.neutral(model)
-
-    # -- conversions ----------------------------------------------------------------------------
-    def frame_id(self, frame: str) -> int:
-        """Pinocchio index of a frame (a URDF link or joint name)."""
-        if not self.model.existFrame(frame):
-            raise ValueError(f"robot '{self.spec.name}' has no frame '{frame}'; links are "
-                             f"{[f.name for f in self.model.frames if f.type == pin.FrameType.BODY]}")
-        if self.model.existFrame(frame, pin.FrameType.BODY):  # a link and a joint may share a name
-            return self.model.getFrameId(frame, pin.FrameType.BODY)
-        return self.model.getFrameId(frame)
-
-    def configuration(self, q) -> np.ndarray:
-        """Pinocchio configuration vector, shape (nq,), from joint values, shape (n,)."""
-        q = self.spec._check_shape(q, "q")
-        if q.ndim != 1:
-            raise ValueError(f"q must have shape ({self.spec.n_joints},); got {q.shape}")
-        qp = np.empty(self.model.nq)
-        qp[self._plain_q] = q[self._plain_j]
-        if self._cont_q.size:
-            qp[self._cont_q] = np.cos(q[self._cont_j])
-            qp[self._cont_q + 1] = np.sin(q[self._cont_j])
-        return qp
-
-    def joint_values(self, qpin) -> np.ndarray:
-        """Inverse of :meth:`configuration`: joint values, shape (n,), from shape (nq,)."""
-        qpin = np.asarray(qpin, dtype=np.float64)
-        q = np.empty(self.spec.n_joints)
-        q[self._plain_j] = qpin[self._plain_q]
-        if self._cont_q.size:
-            q[self._cont_j] = np.arctan2(qpin[self._cont_q + 1], qpin[self._cont_q])
-        return q
-
-    # -- kinematics -----------------------------------------------------------------------------
-    def forward_kinematics(self, q, frame: str | None = None) -> FramePose:
-        """Pose of ``frame`` (default: the end effector) at joint values q, shape (n,)."""
-        fid = self.ee_frame_id if frame is None else self.frame_id(frame)
-        pin.forwardKinematics(self.model, self.data, self.configuration(q))
-        M = pin.updateFramePlacement(self.model, self.data, fid)
-        return FramePose(M.translation.copy(), M.rotation.copy())
-
-    def jacobian(self, q, frame: str | None = None) -> np.ndarray:
-        """Geometric Jacobian of ``frame`` (default: end effector), shape (6, n).
-
-        Rows: linear velocity of the frame origin, then angular velocity, both in world
-        axes (Pinocchio's LOCAL_WORLD_ALIGNED), so that [v; ω] = J q̇.
-        """
-        fid = self.ee_frame_id if frame is None else self.frame_id(frame)
-        J = pin.computeFrameJacobian(self.model, self.data, self.configuration(q), fid,
-                                     pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
-        return J[:, self._idx_v]
-
-    # -- dynamics -------------------------------------------------------------------------------
-    def gravity_torques(self, q) -> np.ndarray:
-        """Joint torques g(q), shape (n,), that hold the arm still: τ = RNEA(q, q̇=0, q̈=0)."""
-        tau = pin.rnea(self.model, self.data, self.configuration(q), self._zero_v, self._zero_v)
-        return tau[self._idx_v].copy()
-
-    def _gravity_unchecked(self, q: np.ndarray) -> np.ndarray:
-        """:meth:`gravity_torques` without input validation, for control loops (q float64 (n,))."""
-        qp = self._qpin_buffer
-        qp[self._plain_q] = q[self._plain_j]
-        if self._cont_q.size:
-            qp[self._cont_q] = np.cos(q[self._cont_j])
-            qp[self._cont_q + 1] = np.sin(q[self._cont_j])
-        return pin.rnea(self.model, self.data, qp, self._zero_v, self._zero_v)[self._idx_v]
-
-    # -- limits ---------------------------------------------------------------------------------
-    def check_joint_limits(self, q, qd=None, *, tolerance: float = 1e-9) -> None:
-        """Raise ``ValueError`` naming the joint if q (or q̇) is outside the spec's limits.
-
-        Parameters
-        ----------
-        q : array_like, shape (..., n)
-        qd : array_like, shape (..., n), optional
-        """
-        self.spec.validate_positions(q, tolerance=tolerance, label="q")
-        if qd is not None:
-            self.spec.validate_velocities(qd, tolerance=tolerance, label="qd")
-
-    def within_limits(self, q, *, tolerance: float = 1e-9) -> bool:
-        """True when every joint of q, shape (n,), is inside its position limits."""
-        q = self.spec._check_shape(q, "q")
-        return bool(np.all((q >= self.spec.lower - tolerance) & (q <= self.spec.upper + tolerance)))

@@ -29,14 +29,8 @@ from typing import NamedTuple, Sequence
 import numpy as np
 import pybullet as pb
 
-from deepprompt_ros.robots.spec import (
-    GRAVITY,
-    FramePose,
-    RobotKinematics,
-    RobotSpec,
-    links_without_inertial,
-    load_robot,
-)
+from deepprompt_ros.robots.kinematics import FramePose, RobotKinematics
+from deepprompt_ros.robots.spec import GRAVITY, RobotSpec, links_without_inertial, load_robot
 
 __all__ = ["CameraPose", "JointState", "ObjectPose", "Simulation", "SHAPES"]
 

@@ -130,11 +130,13 @@ import math
 import pathlib
 import sys
 import time
-from typing import Callable, NamedTuple, Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
 from deepprompt_ros.data.dataset import DatasetError, Demonstration, DemoDataset
+from deepprompt_ros.robots.geometry import quat_xyzw, rodrigues, rot_y, rot_z
+from deepprompt_ros.robots.ik import solve_ik
 
 __all__ = [
     "TASKS",
@@ -143,7 +145,6 @@ __all__ = [
     "ViaTrajectory",
     "make_task",
     "project_point",
-    "solve_ik",
     "main",
 ]
 
@@ -152,8 +153,6 @@ SPLITS = ("train", "val", "test")
 #: Wall-clock seconds per demonstration of the full configuration (see the module docstring).
 MEASURED_SECONDS_PER_DEMO = {"reach": 0.30, "close_box": 0.43, "pour": 1.34, "kinova_pick_place": 0.44}
 
-# Scripted demonstrators keep this far (rad) from the position limits.
-_LIMIT_MARGIN = 0.05
 # Planned peak velocity / acceleration as a fraction of the robot's limits.
 _LIMIT_FRACTION = 0.85
 # Physics step (s) of the recorded execution; position targets are streamed at every step (250 Hz).
@@ -189,162 +188,6 @@ class TaskSpec:
 
     def size(self, split: str, quick: bool = False) -> int:
         return (self.quick_sizes if quick else self.sizes)[SPLITS.index(split)]
-
-
-# ----------------------------------------------------------------------------------------------
-# Small geometry helpers
-# ----------------------------------------------------------------------------------------------
-def _rot_z(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def _rot_y(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
-def _quat_xyzw(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w) of a rotation matrix (Shepperd's method)."""
-    tr = np.trace(R)
-    if tr > 0:
-        s = 2.0 * math.sqrt(tr + 1.0)
-        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
-    else:
-        i = int(np.argmax(np.diag(R)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * math.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
-        q = [0.0, 0.0, 0.0, (R[k, j] - R[j, k]) / s]
-        q[i] = 0.25 * s
-        q[j] = (R[j, i] + R[i, j]) / s
-        q[k] = (R[k, i] + R[i, k]) / s
-    q = np.array(q)
-    return q / np.linalg.norm(q)
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
-def _log3(R: np.ndarray) -> np.ndarray:
-    """Rotation vector (axis × angle), shape (3,), of a rotation matrix."""
-    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    angle = math.acos(c)
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if angle < 1e-9:
-        return 0.5 * w
-    if math.pi - angle < 1e-6:  # axis from the symmetric part
-        i = int(np.argmax(np.diag(R)))
-        axis = (R[:, i] + np.eye(3)[:, i]) / math.sqrt(2.0 * (1.0 + R[i, i]))
-        return angle * axis
-    return angle / (2.0 * math.sin(angle)) * w
-
-
-# ----------------------------------------------------------------------------------------------
-# Inverse kinematics
-# ----------------------------------------------------------------------------------------------
-class IKResult(NamedTuple):
-    """Result of :func:`solve_ik`.
-
-    Attributes
-    ----------
-    q : array, shape (n,)
-        Joint values, inside the limits shrunk by ``margin``.
-    position_error : float
-        |p_target − p(q)| (m).
-    angle_error : float
-        Angle (rad) between the desired and reached tool axis (or rotation); 0 without one.
-    """
-
-    q: np.ndarray
-    position_error: float
-    angle_error: float
-
-
-def solve_ik(kin, position, q_seed, *, axis=None, rotation=None, rest=None, margin: float = _LIMIT_MARGIN,
-             iterations: int = 300, damping: float = 0.03, angle_weight: float = 0.3,
-             rest_gain: float = 0.05, tol_position: float = 1e-4, tol_angle: float = 1e-3) -> IKResult:
-    """Damped-least-squares inverse kinematics of the end-effector frame (Wampler 1986; Buss 2004).
-
-    Each iteration solves Δq = Aᵀ(AAᵀ + λ²I)⁻¹ e for the stacked task error e (position, and
-    optionally the tool-axis or full-rotation error weighted by ``angle_weight``) and adds a
-    null-space step (I − A⁺A) k (q_rest − q) towards ``rest``; steps are capped at 0.2 rad and q is
-    clipped to the limits shrunk by ``margin``.
-
-    Parameters
-    ----------
-    kin : RobotKinematics
-    position : array_like, shape (3,)
-        Target position of the end-effector frame (m, base frame).
-    q_seed : array_like, shape (n,)
-        Start of the iteration (e.g. the previous via-configuration, for continuity).
-    axis : array_like, shape (3,), optional
-        Desired direction of the end-effector frame's z axis (tool axis); e = a* − a, with
-        ȧ = ω × a, i.e. rows −[a]ₓ J_ω.
-    rotation : array, shape (3, 3), optional
-        Desired full orientation (instead of ``axis``); e = log(R* Rᵀ), rows J_ω.
-    rest : array_like, shape (n,), optional
-        Posture preferred in the null space (default: ``q_seed``).
-
-    Returns
-    -------
-    IKResult
-    """
-    spec = kin.spec
-    target = np.asarray(position, dtype=np.float64)
-    lo = np.where(np.isfinite(spec.lower), spec.lower + margin, -np.inf)
-    hi = np.where(np.isfinite(spec.upper), spec.upper - margin, np.inf)
-    q = np.clip(np.asarray(q_seed, dtype=np.float64), lo, hi)
-    q_rest = q.copy() if rest is None else np.asarray(rest, dtype=np.float64)
-    a_des = None if axis is None else np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
-    R_des = None if rotation is None else np.asarray(rotation, dtype=np.float64)
-    n = spec.n_joints
-    eye_n = np.eye(n)
-    cols = _velocity_columns(kin)
-    for it in range(iterations + 1):
-        p, R, J = _fk_jacobian(kin, q, cols)
-        e_p_vec = target - p
-        rows, errs = [J[:3]], [e_p_vec]
-        ang = 0.0
-        if a_des is not None:
-            a = R[:, 2]
-            ang = math.acos(float(np.clip(a @ a_des, -1.0, 1.0)))
-            rows.append(angle_weight * (-_skew(a) @ J[3:]))
-            errs.append(angle_weight * (a_des - a))
-        elif R_des is not None:
-            e_r = _log3(R_des @ R.T)
-            ang = float(np.linalg.norm(e_r))
-            rows.append(angle_weight * J[3:])
-            errs.append(angle_weight * e_r)
-        e_p = float(np.linalg.norm(e_p_vec))
-        if (e_p < tol_position and ang < tol_angle) or it == iterations:
-            break
-        A, e = np.vstack(rows), np.concatenate(errs)
-        dq = A.T @ np.linalg.solve(A @ A.T + damping**2 * np.eye(A.shape[0]), e)
-        # exact null-space projector (I − A⁺A): the posture term does not disturb the task
-        dq = dq + (eye_n - np.linalg.pinv(A, rcond=1e-6) @ A) @ (rest_gain * (q_rest - q))
-        step = float(np.max(np.abs(dq)))
-        if step > 0.2:
-            dq *= 0.2 / step
-        q = np.clip(q + dq, lo, hi)
-    return IKResult(q, e_p, ang)
-
-
-def _fk_jacobian(kin, q: np.ndarray, cols: np.ndarray):
-    """End-effector position (3,), rotation (3, 3) and world-aligned Jacobian (6, n) in one pass."""
-    import pinocchio as pin
-
-    fid = kin.ee_frame_id
-    J = pin.computeFrameJacobian(kin.model, kin.data, kin.configuration(q), fid,
-                                 pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
-    M = pin.updateFramePlacement(kin.model, kin.data, fid)
-    return M.translation.copy(), M.rotation.copy(), J[:, cols]
-
-
-def _velocity_columns(kin) -> np.ndarray:
-    """Columns of Pinocchio's Jacobian for the spec's joints, in ``spec.joint_names`` order."""
-    m = kin.model
-    return np.array([m.joints[m.getJointId(j)].idx_v for j in kin.spec.joint_names])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -539,7 +382,7 @@ class _Scene:
         self.sim.close()
 
     def add(self, name: str, shape: str, size, position, R=None, rgba=(0.85, 0.1, 0.1, 1.0)) -> int:
-        orn = (0.0, 0.0, 0.0, 1.0) if R is None else tuple(_quat_xyzw(R))
+        orn = (0.0, 0.0, 0.0, 1.0) if R is None else tuple(quat_xyzw(R))
         body = self.sim.spawn_object(name, shape, size, position, orn, rgba=rgba, mass=0.0)
         self.temp.append(name)
         self.bodies[name] = body
@@ -729,7 +572,7 @@ def _demo_close_box(scene: _Scene, rng, index: int):
     theta = math.radians(rng.uniform(40.0, 100.0))
     r, b = rng.uniform(0.5, 0.72), rng.uniform(-0.6, 0.6)
     x, y, yaw = r * math.cos(b), r * math.sin(b), b + rng.uniform(-0.4, 0.4)
-    Rb = _rot_z(yaw)
+    Rb = rot_z(yaw)
     origin = np.array([x, y, 0.0])
 
     def world(p_local):
@@ -763,7 +606,7 @@ def _demo_close_box(scene: _Scene, rng, index: int):
     traj = _plan(scene, knots, rng)
     scene.add("box", "box", (_BOX_L, _BOX_W, _BOX_H), world(np.array([0.0, 0.0, _BOX_H / 2])), R=Rb,
               rgba=(0.75, 0.55, 0.3, 1.0))
-    R_lid = Rb @ _rot_y(-theta)
+    R_lid = Rb @ rot_y(-theta)
     lid_center = hinge + (_BOX_L / 2) * np.array([math.cos(theta), 0.0, math.sin(theta)])
     scene.add("lid", "box", (_BOX_L, _BOX_W, _LID_T), world(lid_center), R=R_lid, rgba=(0.85, 0.2, 0.15, 1.0))
     if scene.collides(traj, ["box"], margin=0.0):
@@ -774,11 +617,6 @@ def _demo_close_box(scene: _Scene, rng, index: int):
 
 # Cup and pot of pour (m).
 _CUP_R, _CUP_H, _POT_R = 0.035, 0.11, 0.06
-
-
-def _rodrigues(axis: np.ndarray, angle: float) -> np.ndarray:
-    K = _skew(axis / np.linalg.norm(axis))
-    return np.eye(3) + math.sin(angle) * K + (1.0 - math.cos(angle)) * K @ K
 
 
 def _tilted_axis(bearing: float, tilt: float) -> np.ndarray:
@@ -807,7 +645,7 @@ def _demo_pour(scene: _Scene, rng, index: int):
     tilt = sign * rng.uniform(1.4, 2.0)
     # Rolling J7 (axis = tool axis a_p) by `tilt` turns the cup's axis from z to R z; place the cup
     # so that its mouth (half a cup height along that axis) ends above the pot's centre.
-    up = _rodrigues(a_p, tilt) @ np.array([0.0, 0.0, 1.0])
+    up = rodrigues(a_p, tilt) @ np.array([0.0, 0.0, 1.0])
     mouth = np.append(pot, pot_h + rng.uniform(0.08, 0.14))
     centre = mouth - (_CUP_H / 2) * up
     p_pour = centre - hold * a_p
@@ -851,7 +689,7 @@ def _demo_kinova(scene: _Scene, rng, index: int):
     cams = _kinova_cameras()
     if pick:
         q0 = _jitter_start(spec, rng, 0.05)
-        R_g = _rot_z(psi) @ _TOOL_DOWN
+        R_g = rot_z(psi) @ _TOOL_DOWN
         p_pre = np.append(obj, _CUBE / 2 + rng.uniform(0.08, 0.14))
         p_grasp = np.append(obj, rng.uniform(0.012, 0.02))
         p_lift = p_grasp + [0.0, 0.0, rng.uniform(0.06, 0.12)]
@@ -861,10 +699,10 @@ def _demo_kinova(scene: _Scene, rng, index: int):
             knots.append(q)
         traj = _plan(scene, knots, rng, holds={2: rng.uniform(0.3, 0.6)})
         goal_name, goal_point = "cube", np.append(obj, _CUBE / 2)
-        cube_pos, cube_R = np.append(obj, _CUBE / 2), _rot_z(psi)
+        cube_pos, cube_R = np.append(obj, _CUBE / 2), rot_z(psi)
     else:
         held_yaw = rng.uniform(-0.5, 0.5)
-        R_c = _rot_z(held_yaw) @ _TOOL_DOWN
+        R_c = rot_z(held_yaw) @ _TOOL_DOWN
         p_start = np.append(obj, rng.uniform(0.08, 0.14))
         q0 = _ik(scene, p_start, spec.home, rest=spec.home, rotation=R_c)
         p_above = np.append(square, rng.uniform(0.08, 0.14))
