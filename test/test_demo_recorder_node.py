@@ -16,12 +16,13 @@ from rclpy.serialization import serialize_message
 from sensor_msgs.msg import JointState
 from std_srvs.srv import SetBool, Trigger
 
+from deepprompt_ros.common.params import specs_of
 from deepprompt_ros.recording import recorder as rec
+from deepprompt_ros.recording.config import RecorderConfig
 from deepprompt_ros.data.dataset import load_dataset, load_demo
 from deepprompt_ros.robots.kinematics import RobotKinematics
 from deepprompt_ros.robots.spec import load_robot
 from deepprompt_ros.ros import conversions as conv
-from deepprompt_ros.ros.demo_recorder import PARAMETERS
 from deepprompt_ros.ros.testing import NodeProcess, RosTestClient, isolated_ros_env
 
 CONFIG = pathlib.Path(__file__).resolve().parents[1] / "config" / "demo_recorder.yaml"
@@ -168,7 +169,8 @@ def test_recording_helpers(tmp_path):
 
 def test_config_file_documents_the_declared_parameters():
     values = yaml.safe_load(CONFIG.read_text())["demo_recorder"]["ros__parameters"]
-    declared = {p.name: p.default for p in PARAMETERS}
+    declared = {p.name: list(p.default) if isinstance(p.default, tuple) else p.default
+                for p in specs_of(RecorderConfig)}
     assert set(values) == set(declared)
     assert values.pop("context_topics") == ["object=objects/cube/pose", "camera/image_raw"]
     assert {k: v for k, v in values.items() if v != declared[k]} == {}  # the file shows the defaults
@@ -329,7 +331,9 @@ def test_invalid_parameters_exit_with_clear_message(nodes):
     assert proc.wait(60.0) == 2, proc.output_tail()
     out = proc.output()
     assert "invalid configuration" in out and "Traceback" not in out
-    for text in ["parameter 'max_images'", "parameter 'phase_type' = 'circular'", "context name '9'"]:
+    for text in ["max_images = 0: expected a value in [1, 64]",
+                 "phase_type = 'circular': expected one of 'linear', 'rhythmic'",
+                 "context_topics: context name '9'"]:
         assert text in out, out
 
 

@@ -16,8 +16,10 @@ from std_srvs.srv import SetBool, Trigger
 from deepprompt_ros.robots.kinematics import RobotKinematics
 from deepprompt_ros.robots.spec import load_robot
 from deepprompt_ros.ros import conversions as conv
-from deepprompt_ros.ros.sim_bridge import OBJECT_FIELDS, PARAMETERS, ClockSerializer, CommandReader
+from deepprompt_ros.common.params import specs_of
+from deepprompt_ros.ros.sim_bridge import ClockSerializer, CommandReader
 from deepprompt_ros.ros.testing import NodeProcess, RosTestClient, isolated_ros_env
+from deepprompt_ros.sim.bridge_config import ObjectConfig, SimBridgeConfig
 
 CONFIG = pathlib.Path(__file__).resolve().parents[1] / "config" / "sim_bridge.yaml"
 SPEC = load_robot("gen3_lite")
@@ -310,11 +312,13 @@ def test_config_file_documents_the_declared_parameters():
     import yaml
 
     values = _flatten(yaml.safe_load(CONFIG.read_text())["sim_bridge"]["ros__parameters"])
-    declared = {p.name: p.default for p in PARAMETERS}
+    declared = {p.name: list(p.default) if isinstance(p.default, tuple) else p.default
+                for p in specs_of(SimBridgeConfig)}
     objects = values.pop("object_names")
     assert objects == ["cube"]
     obj = {k: v for k, v in values.items() if k.startswith("objects.")}
-    assert {k for k in obj} == {f"objects.cube.{f.name}" for f in OBJECT_FIELDS}
+    assert {k for k in obj} == {f"objects.cube.{f.name}" for f in specs_of(ObjectConfig)}
+    ObjectConfig(**{k.rsplit(".", 1)[1]: tuple(v) if isinstance(v, list) else v for k, v in obj.items()})
     plain = {k: v for k, v in values.items() if k not in obj}
     assert set(plain) == set(declared) - {"object_names"}
     assert {k: v for k, v in plain.items() if v != declared[k]} == {}  # the file shows the defaults

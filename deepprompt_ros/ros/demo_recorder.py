@@ -56,40 +56,15 @@ from deepprompt_ros.recording.recorder import (
     qos_profile_yaml,
     validate_demo_name,
 )
+from deepprompt_ros.common.params import ConfigError
+from deepprompt_ros.recording.config import RecorderConfig
 from deepprompt_ros.ros import conversions as conv
-from deepprompt_ros.ros.parameters import ConfigError, ParamSpec, declare_all
+from deepprompt_ros.ros.parameters import declare_config
 
-__all__ = ["DemoRecorder", "PARAMETERS", "main"]
+__all__ = ["DemoRecorder", "main"]
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 JOINT_STATE_TYPE = "sensor_msgs/msg/JointState"
-
-
-#: Every parameter of the node (the README table is generated from the same list).
-PARAMETERS = (
-    ParamSpec("joint_states_topic", "str", "joint_states", "sensor_msgs/JointState input"),
-    ParamSpec("joint_names", "str[]", [], "joints to record, in this order; empty = all joints of "
-              "the latest joint state, in its order"),
-    ParamSpec("context_topics", "str[]", [], "context topics, 'topic' or 'name=topic' (e.g. "
-              "'object=objects/cube/pose', 'camera/image_raw'); default of StartRecording"),
-    ParamSpec("context_pose_fields", "str", "position", "pose contexts: 'position' (3 values) or "
-              "'pose' (position + quaternion xyzw, 7)"),
-    ParamSpec("output_directory", "str", "~/deepprompt_demos", "dataset folder receiving <name>.npz"),
-    ParamSpec("record_bag", "bool", True, "also write the raw messages as a rosbag2 MCAP bag"),
-    ParamSpec("bag_directory", "str", "", "folder of the bags; empty = <output_directory>/bags"),
-    ParamSpec("bag_compression", "str", "zstd", "MCAP chunk compression: zstd, lz4 or none"),
-    ParamSpec("max_images", "int", 4, "images kept per demonstration", 1, 64),
-    ParamSpec("image_width", "int", 64, "width of the kept images (pixels)", 1, 1024),
-    ParamSpec("image_height", "int", 64, "height of the kept images (pixels)", 1, 1024),
-    ParamSpec("joint_states_timeout", "float", 1.0, "start_recording fails when the latest joint "
-              "state is older than this (s)", 0.01, 3600.0),
-    ParamSpec("phase_type", "str", "linear", "phase type of the demonstrations: linear or rhythmic"),
-    ParamSpec("poll_rate_hz", "float", 100.0, "how often queued messages are taken from the "
-              "subscriptions (they keep 1000 joint states)", 1.0, 1000.0),
-)
-
-_CHOICES = {"context_pose_fields": ("position", "pose"), "bag_compression": ("zstd", "lz4", "none"),
-            "phase_type": ("linear", "rhythmic")}
 
 
 def _unused(*_args) -> None:
@@ -134,18 +109,12 @@ class DemoRecorder(Node):
 
     def __init__(self, **node_kwargs):
         super().__init__("demo_recorder", **node_kwargs)
-        p, errors = declare_all(self, PARAMETERS, _CHOICES)  # every bad value is reported at once
-        try:
-            self._default_specs = [parse_context_spec(s) for s in p.get("context_topics", [])]
-        except RecordingError as exc:
-            errors.append(f"parameter 'context_topics': {exc}")
-        if errors:
-            raise ConfigError("; ".join(errors))
-        self._p = p
-        self._out_dir = pathlib.Path(p["output_directory"]).expanduser()
-        self._bag_dir = (pathlib.Path(p["bag_directory"]).expanduser() if p["bag_directory"]
+        self._p = p = declare_config(self, RecorderConfig)  # every bad value is reported at once
+        self._default_specs = p.context_specs()
+        self._out_dir = pathlib.Path(p.output_directory).expanduser()
+        self._bag_dir = (pathlib.Path(p.bag_directory).expanduser() if p.bag_directory
                          else self._out_dir / "bags")
-        self._js_topic = self.resolve_topic_name(p["joint_states_topic"])
+        self._js_topic = self.resolve_topic_name(p.joint_states_topic)
         self._js_qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
         self._last_js: tuple[int, bytes] | None = None  # (receive time ns, CDR bytes)
         self._contexts: dict[str, _ContextTopic] = {}
@@ -160,11 +129,11 @@ class DemoRecorder(Node):
                                                       self._js_qos, raw=True)
         self.create_service(StartRecording, "start_recording", self._on_start)
         self.create_service(StopRecording, "stop_recording", self._on_stop)
-        self.create_timer(1.0 / p["poll_rate_hz"], self._poll)
+        self.create_timer(1.0 / p.poll_rate_hz, self._poll)
         self.create_timer(0.5, self._subscribe_default_contexts)
         self.get_logger().info(
             f"recording {self._js_topic} into {self._out_dir}"
-            + (f" (bags in {self._bag_dir})" if p["record_bag"] else " (no bags)")
+            + (f" (bags in {self._bag_dir})" if p.record_bag else " (no bags)")
             + f"; default contexts {[t for _, t in self._default_specs]}")
 
     # ------------------------------------------------------------------------------------------
@@ -210,7 +179,7 @@ class DemoRecorder(Node):
             if name == "image":
                 rec.buffer.add_image(conv.image_to_array(msg))
             else:
-                rec.buffer.add_context(name, conv.context_vector(msg, pose_fields=self._p["context_pose_fields"]))
+                rec.buffer.add_context(name, conv.context_vector(msg, pose_fields=self._p.context_pose_fields))
         except (ValueError, RecordingError) as exc:
             rec.invalid_contexts += 1
             self.get_logger().warn(f"message on {ctx.topic} not usable as context: {exc}",
@@ -303,16 +272,16 @@ class DemoRecorder(Node):
         except RecordingError as exc:
             return fail(ResultCode.INVALID_REQUEST, str(exc))
         p = self._p
-        joint_names = p["joint_names"]
+        joint_names = p.joint_names
         self._poll()  # up to date: the freshness check below and the context seeds need it
         if self._last_js is None:
             problems.append((ResultCode.ROBOT_STATE_STALE, f"no JointState received on {self._js_topic} "
                              f"yet (is the robot driver or sim_bridge running?)"))
         else:
             age = (time.time_ns() - self._last_js[0]) * 1e-9
-            if age > p["joint_states_timeout"]:
+            if age > p.joint_states_timeout:
                 problems.append((ResultCode.ROBOT_STATE_STALE, f"the latest JointState on {self._js_topic} "
-                                 f"is {age:.2f} s old (joint_states_timeout {p['joint_states_timeout']:g} s)"))
+                                 f"is {age:.2f} s old (joint_states_timeout {p.joint_states_timeout:g} s)"))
             names = tuple(deserialize_message(self._last_js[1], JointState).name)
             missing = [j for j in joint_names if j not in names]
             if missing:
@@ -326,7 +295,7 @@ class DemoRecorder(Node):
                                  f"{self._out_dir}; choose another demo_name"))
         except RecordingError as exc:
             problems.append((ResultCode.INVALID_REQUEST, f"{exc}; set parameter output_directory"))
-        if p["record_bag"]:
+        if p.record_bag:
             try:
                 check_writable_directory(self._bag_dir, "bag directory")
                 if (self._bag_dir / name).exists():
@@ -354,11 +323,11 @@ class DemoRecorder(Node):
         if problems:
             return fail(problems[0][0], "cannot start recording: " + "; ".join(m for _, m in problems))
 
-        buffer = DemoBuffer(name, joint_names, max_images=p["max_images"], image_height=p["image_height"],
-                            image_width=p["image_width"], phase_type=p["phase_type"])
+        buffer = DemoBuffer(name, joint_names, max_images=p.max_images, image_height=p.image_height,
+                            image_width=p.image_width, phase_type=p.phase_type)
         bag = None
-        if p["record_bag"]:
-            bag = BagWriter(self._bag_dir, name, compression=p["bag_compression"])
+        if p.record_bag:
+            bag = BagWriter(self._bag_dir, name, compression=p.bag_compression)
             bag.add_topic(self._js_topic, JOINT_STATE_TYPE,
                           offered_qos_profiles=qos_profile_yaml(depth=self._js_qos.depth))
             for topic in list(contexts) + bag_only:

@@ -3,7 +3,8 @@
 Run: ``ros2 run deepprompt_ros sim_bridge --ros-args --params-file config/sim_bridge.yaml``
 (or ``python -m deepprompt_ros.ros.sim_bridge ...``).
 
-Interfaces (names relative to the node's namespace; parameters in ``PARAMETERS`` below):
+Interfaces (names relative to the node's namespace; parameters: the fields of
+:class:`~deepprompt_ros.sim.bridge_config.SimBridgeConfig`, ``docs/parameters.md``):
 
 * publishes ``joint_states`` (sensor_msgs/JointState: name, position, velocity, effort) once per
   physics step, i.e. at ``rate_hz`` × ``real_time_factor`` per wall-clock second, or every n-th
@@ -67,66 +68,13 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, JointState
 from std_srvs.srv import SetBool, Trigger
 
-from deepprompt_ros.sim.simulation import SHAPES, CameraPose, Simulation
+from deepprompt_ros.common.params import ConfigError
 from deepprompt_ros.ros import conversions as conv
-from deepprompt_ros.ros.parameters import ConfigError, ParamSpec, declare_all
-from deepprompt_ros.ros.parameters import declare as _declare
+from deepprompt_ros.ros.parameters import declare_config
+from deepprompt_ros.sim.bridge_config import ObjectConfig, SimBridgeConfig
+from deepprompt_ros.sim.simulation import CameraPose, Simulation
 
-__all__ = ["SimBridge", "PARAMETERS", "main"]
-
-
-#: Every parameter of the node (the README table is generated from the same list).
-PARAMETERS = (
-    ParamSpec("robot", "str", "gen3_lite", "gen3_lite, wam, or a fixed-base arm of example-robot-data "
-              "(panda, ur5, ...)"),
-    ParamSpec("rate_hz", "float", 0.0, "physics steps and joint_states per simulated second; "
-              "0 = the robot's control rate (1000 for gen3_lite and wam)", 0.0, 5000.0),
-    ParamSpec("real_time_factor", "float", 1.0, "simulated seconds per wall-clock second; "
-              "0 = as fast as possible", 0.0, 100.0),
-    ParamSpec("command_topic", "str", "joint_command", "sensor_msgs/JointState position targets "
-              "with velocity feed-forward"),
-    ParamSpec("joint_states_topic", "str", "joint_states", "sensor_msgs/JointState output"),
-    ParamSpec("joint_states_rate_hz", "float", 0.0, "joint_states messages per simulated second: "
-              "every n-th physics step, n = round(rate_hz / joint_states_rate_hz); 0 = every step",
-              0.0, 5000.0),
-    ParamSpec("publish_clock", "bool", True, "publish the simulation time on /clock"),
-    ParamSpec("initial_positions", "float[]", [], "start configuration, one value per joint; "
-              "empty = the robot's home"),
-    ParamSpec("kinesthetic", "bool", False, "start in kinesthetic (gravity-compensated) mode"),
-    ParamSpec("guide_topic", "str", "guide_target", "geometry_msgs/PointStamped the end effector "
-              "is pulled to (NaN clears)"),
-    ParamSpec("guide_stiffness", "float", 200.0, "guide spring stiffness (N/m)", 1.0, 1e4),
-    ParamSpec("guide_max_force", "float", 30.0, "bound on the guide force (N)", 0.1, 1000.0),
-    ParamSpec("camera.enabled", "bool", True, "render and publish camera images"),
-    ParamSpec("camera.topic", "str", "camera/image_raw", "sensor_msgs/Image output (rgb8)"),
-    ParamSpec("camera.frame_id", "str", "camera", "header.frame_id of the images"),
-    ParamSpec("camera.rate_hz", "float", 5.0, "images per simulated second", 0.1, 60.0),
-    ParamSpec("camera.width", "int", 64, "image width (pixels)", 1, 1024),
-    ParamSpec("camera.height", "int", 64, "image height (pixels)", 1, 1024),
-    ParamSpec("camera.eye", "float[]", [], "camera position [x, y, z] (m); empty = a default view of "
-              "the arm"),
-    ParamSpec("camera.target", "float[]", [], "point the camera looks at [x, y, z] (m); with "
-              "camera.eye"),
-    ParamSpec("camera.fov_deg", "float", 50.0, "vertical field of view (degrees), with camera.eye",
-              1.0, 179.0),
-    ParamSpec("objects_topic_prefix", "str", "objects", "object poses go to <prefix>/<name>/pose"),
-    ParamSpec("objects_rate_hz", "float", 30.0, "object pose messages per simulated second",
-              0.1, 1000.0),
-    ParamSpec("world_frame", "str", "world", "frame of object poses and guide targets"),
-    ParamSpec("object_names", "str[]", [], "objects spawned at start, each described by "
-              "objects.<name>.{shape, size, position, orientation, mass, rgba}"),
-)
-
-#: Per-object parameters objects.<name>.<field> (kind, default, description).
-OBJECT_FIELDS = (
-    ParamSpec("shape", "str", "box", "one of " + ", ".join(SHAPES)),
-    ParamSpec("size", "float[]", [0.05, 0.05, 0.05], "box [x, y, z] edges, sphere [radius], "
-              "cylinder [radius, length] (m)"),
-    ParamSpec("position", "float[]", [0.4, 0.0, 0.025], "centre [x, y, z] in the world (m)"),
-    ParamSpec("orientation", "float[]", [0.0, 0.0, 0.0, 1.0], "quaternion [x, y, z, w]"),
-    ParamSpec("mass", "float", 0.1, "kg; 0 = static", 0.0, 1000.0),
-    ParamSpec("rgba", "float[]", [], "colour [r, g, b, a] in [0, 1]; empty = default"),
-)
+__all__ = ["SimBridge", "main"]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -249,35 +197,29 @@ class SimBridge(Node):
 
     def __init__(self, **node_kwargs):
         super().__init__("sim_bridge", **node_kwargs)
-        p, errors = declare_all(self, PARAMETERS)  # every bad value is reported at once
-        if errors:
-            raise ConfigError("; ".join(errors))
-        self._p = p
-        if 0.0 < p["rate_hz"] < 10.0:
-            raise ConfigError(f"parameter 'rate_hz' = {p['rate_hz']} is too low; expected 0 (robot's "
-                              f"control rate) or 10..5000 Hz")
+        self.cfg = p = declare_config(self, SimBridgeConfig)  # every bad value is reported at once
         try:
             from deepprompt_ros.robots.spec import load_robot
 
-            spec = load_robot(p["robot"])
+            spec = load_robot(p.robot)
         except ValueError as exc:
             raise ConfigError(f"parameter 'robot': {exc}") from None
-        rate = p["rate_hz"] or spec.control_rate_hz
-        if 0.0 < p["joint_states_rate_hz"] < 1.0 or p["joint_states_rate_hz"] > rate:
-            raise ConfigError(f"parameter 'joint_states_rate_hz' = {p['joint_states_rate_hz']}; expected 0 "
+        rate = p.rate_hz or spec.control_rate_hz
+        if 0.0 < p.joint_states_rate_hz < 1.0 or p.joint_states_rate_hz > rate:
+            raise ConfigError(f"parameter 'joint_states_rate_hz' = {p.joint_states_rate_hz}; expected 0 "
                               f"(every physics step) or 1..{rate:g} Hz (the physics rate)")
-        self._js_every = max(1, round(rate / p["joint_states_rate_hz"])) if p["joint_states_rate_hz"] else 1
+        self._js_every = max(1, round(rate / p.joint_states_rate_hz)) if p.joint_states_rate_hz else 1
         camera = None
-        if p["camera.eye"] or p["camera.target"]:
+        if p.camera_eye or p.camera_target:
             try:
-                camera = CameraPose(eye=tuple(p["camera.eye"]), target=tuple(p["camera.target"]),
-                                    fov_deg=p["camera.fov_deg"])
+                camera = CameraPose(eye=tuple(p.camera_eye), target=tuple(p.camera_target),
+                                    fov_deg=p.camera_fov_deg)
             except (ValueError, TypeError) as exc:
                 raise ConfigError(f"parameters 'camera.eye' / 'camera.target': {exc} (both must be "
                                   f"[x, y, z])") from None
         try:
-            self.sim = Simulation(spec, timestep=1.0 / rate, real_time_factor=p["real_time_factor"],
-                                  camera=camera, initial_q=p["initial_positions"] or None)
+            self.sim = Simulation(spec, timestep=1.0 / rate, real_time_factor=p.real_time_factor,
+                                  camera=camera, initial_q=p.initial_positions or None)
         except ValueError as exc:
             raise ConfigError(f"parameter 'initial_positions': {exc}") from None
         self.spec = spec
@@ -286,30 +228,29 @@ class SimBridge(Node):
         self._stop = threading.Event()
         self._failed = False
         self._object_pubs: dict[str, Any] = {}
+        objects = {name: declare_config(self, ObjectConfig, prefix=f"objects.{name}.") for name in p.object_names}
         try:
-            for name in p["object_names"]:
-                f = {s.name: _declare(self, s, f"objects.{name}.{s.name}") for s in OBJECT_FIELDS}
-                self._spawn(name, f["shape"], f["size"], f["position"], f["orientation"], f["mass"],
-                            f["rgba"] or None)
+            for name, o in objects.items():
+                self._spawn(name, o.shape, o.size, o.position, o.orientation, o.mass, o.rgba or None)
         except ValueError as exc:
             raise ConfigError(f"parameter objects.{name}: {exc}") from None
-        if p["kinesthetic"]:
+        if p.kinesthetic:
             self.sim.set_kinesthetic(True)
 
         # A deep history: a reliable subscriber that stalls for up to 0.5 s (a busy recorder)
         # still gets every message.
-        self._js_pub = self.create_publisher(JointState, p["joint_states_topic"], 500)
-        self._clock_pub = self.create_publisher(Clock, "/clock", 10) if p["publish_clock"] else None
-        self._image_pub = (self.create_publisher(Image, p["camera.topic"], 5)
-                           if p["camera.enabled"] else None)
+        self._js_pub = self.create_publisher(JointState, p.joint_states_topic, 500)
+        self._clock_pub = self.create_publisher(Clock, "/clock", 10) if p.publish_clock else None
+        self._image_pub = (self.create_publisher(Image, p.camera_topic, 5)
+                           if p.camera_enabled else None)
         # joint commands are taken by the simulation thread from a subscription of a helper node
         # that no executor spins (no executor dispatch per message at 1 kHz)
         self._command_node = rclpy.create_node(f"{self.get_name()}_command_reader",
                                                namespace=self.get_namespace(), context=self.context)
         self._command_sub = self._command_node.create_subscription(
-            JointState, p["command_topic"], lambda msg: None, 10, raw=True)
+            JointState, p.command_topic, lambda msg: None, 10, raw=True)
         self._read_command = CommandReader(self._names, spec.joints_text())
-        self.create_subscription(PointStamped, p["guide_topic"], self._on_guide, 10)
+        self.create_subscription(PointStamped, p.guide_topic, self._on_guide, 10)
         self.create_service(SpawnObject, "spawn_object", self._on_spawn)
         self.create_service(SetBool, "set_kinesthetic", self._on_set_kinesthetic)
         self.create_service(Trigger, "reset", self._on_reset)
@@ -317,10 +258,10 @@ class SimBridge(Node):
         self._thread = threading.Thread(target=self._run, name="sim", daemon=True)
         self.get_logger().info(
             f"robot {spec.name} ({spec.joints_text()}), {rate:g} Hz, real_time_factor "
-            f"{p['real_time_factor']:g}; publishing {self.resolve_topic_name(p['joint_states_topic'])}"
+            f"{p.real_time_factor:g}; publishing {self.resolve_topic_name(p.joint_states_topic)}"
             + (f" every {self._js_every} steps ({rate / self._js_every:g} Hz)" if self._js_every > 1 else "")
-            + (f", camera {p['camera.width']}x{p['camera.height']} at {p['camera.rate_hz']:g} Hz"
-               if p["camera.enabled"] else "") + f", objects {list(self.sim.objects)}")
+            + (f", camera {p.camera_width}x{p.camera_height} at {p.camera_rate_hz:g} Hz"
+               if p.camera_enabled else "") + f", objects {list(self.sim.objects)}")
 
     # ------------------------------------------------------------------------------------------
     # simulation thread
@@ -350,9 +291,9 @@ class SimBridge(Node):
         return fut.result(timeout=timeout)
 
     def _run(self) -> None:
-        p, sim = self._p, self.sim
-        dt_cam = 1.0 / p["camera.rate_hz"]
-        dt_obj = 1.0 / p["objects_rate_hz"]
+        p, sim = self.cfg, self.sim
+        dt_cam = 1.0 / p.camera_rate_hz
+        dt_obj = 1.0 / p.objects_rate_hz
         next_cam = next_obj = 0.0
         t0_ns = time.time_ns()
         state_bytes = conv.JointStateSerializer(self._names, effort=True)
@@ -383,13 +324,13 @@ class SimBridge(Node):
                     for name, pub in self._object_pubs.items():
                         pose = sim.object_pose(name)
                         m = conv.pose_stamped(pose.position, pose.orientation_xyzw,
-                                              frame_id=p["world_frame"])
+                                              frame_id=p.world_frame)
                         m.header.stamp = stamp
                         pub.publish(m)
                 if self._image_pub is not None and sim.time >= next_cam:
                     next_cam = sim.time + dt_cam
-                    img = sim.camera_image(p["camera.width"], p["camera.height"])
-                    m = conv.array_to_image(img, frame_id=p["camera.frame_id"])
+                    img = sim.camera_image(p.camera_width, p.camera_height)
+                    m = conv.array_to_image(img, frame_id=p.camera_frame_id)
                     m.header.stamp = conv.ns_to_stamp(stamp_ns)
                     self._image_pub.publish(m)
         except Exception as exc:  # a broken simulation ends the node with an error
@@ -419,9 +360,9 @@ class SimBridge(Node):
     # ------------------------------------------------------------------------------------------
     def _on_guide(self, msg: PointStamped) -> None:
         frame = msg.header.frame_id
-        if frame not in ("", self._p["world_frame"]):
+        if frame not in ("", self.cfg.world_frame):
             self.get_logger().warn(f"guide target rejected: frame '{frame}'; expected "
-                                   f"'{self._p['world_frame']}' or empty", throttle_duration_sec=1.0)
+                                   f"'{self.cfg.world_frame}' or empty", throttle_duration_sec=1.0)
             return
         target = conv.point_to_array(msg.point)
         if np.any(np.isnan(target)):
@@ -431,7 +372,7 @@ class SimBridge(Node):
             self.get_logger().warn(f"guide target rejected: {target.tolist()} is not finite",
                                    throttle_duration_sec=1.0)
             return
-        k, fmax = self._p["guide_stiffness"], self._p["guide_max_force"]
+        k, fmax = self.cfg.guide_stiffness, self.cfg.guide_max_force
         self._calls.put((lambda: self.sim.guide_towards(target, stiffness=k, max_force=fmax),
                          concurrent.futures.Future()))
 
@@ -457,7 +398,7 @@ class SimBridge(Node):
         else:
             do()
         if name not in self._object_pubs:
-            topic = f"{self._p['objects_topic_prefix']}/{name}/pose"
+            topic = f"{self.cfg.objects_topic_prefix}/{name}/pose"
             self._object_pubs = {**self._object_pubs, name: self.create_publisher(PoseStamped, topic, 10)}
 
     def _thread_started(self) -> bool:
@@ -477,7 +418,7 @@ class SimBridge(Node):
             return res
         res.success, res.code.value = True, ResultCode.SUCCESS
         res.message = (f"spawned {req.shape} '{req.name}'; pose on "
-                       f"{self.resolve_topic_name(self._p['objects_topic_prefix'] + '/' + req.name + '/pose')}")
+                       f"{self.resolve_topic_name(self.cfg.objects_topic_prefix + '/' + req.name + '/pose')}")
         return res
 
     def _on_set_kinesthetic(self, req: SetBool.Request, res: SetBool.Response) -> SetBool.Response:
