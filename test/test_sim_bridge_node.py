@@ -11,6 +11,7 @@ from deepprompt_msgs.srv import SpawnObject
 from geometry_msgs.msg import PointStamped, PoseStamped
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, JointState
+from std_msgs.msg import String
 from std_srvs.srv import SetBool, Trigger
 
 from deepprompt_ros.robots.kinematics import RobotKinematics
@@ -74,6 +75,21 @@ def _wait_at_rest(client, timeout: float = 5.0, tol: float = 1e-3) -> np.ndarray
 
 def _command(q, names=SPEC.joint_names, velocity=None) -> JointState:
     return conv.arrays_to_joint_state(names, q, velocity)
+
+
+def test_robot_description_reaches_a_late_subscriber(sim, client):
+    """Published once at start, transient local: a subscriber created long after gets the URDF."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    log = client.subscribe("robot_description", String, qos)
+    assert client.wait_for_messages(log, 1, 10.0), sim.output_tail()
+    assert log.last().data == SPEC.urdf_path.read_text()
+    assert '<robot name="' in log.last().data and all(f'name="{j}"' in log.last().data for j in SPEC.joint_names)
+    info, = client.node.get_publishers_info_by_topic("/robot_description")  # (depth is not discovered)
+    assert (info.qos_profile.durability, info.qos_profile.reliability) == (DurabilityPolicy.TRANSIENT_LOCAL,
+                                                                          ReliabilityPolicy.RELIABLE)
+    client.unsubscribe(log)
 
 
 def test_joint_states_rate_names_and_stamps(sim, client):

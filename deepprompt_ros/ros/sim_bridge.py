@@ -10,6 +10,9 @@ Interfaces (names relative to the node's namespace; parameters: the fields of
   physics step, i.e. at ``rate_hz`` × ``real_time_factor`` per wall-clock second, or every n-th
   step with ``joint_states_rate_hz`` (n = round(rate_hz / joint_states_rate_hz));
 * publishes ``/clock`` (rosgraph_msgs/Clock) with the simulation time when ``publish_clock``;
+* publishes ``robot_description`` (std_msgs/String) once: the URDF of the simulated robot,
+  reliable and transient local with depth 1 (as robot_state_publisher offers it), so RViz's
+  RobotModel display and subscribers that join later get it;
 * publishes ``camera/image_raw`` (sensor_msgs/Image, rgb8) at ``camera.rate_hz`` (simulated time);
 * publishes ``objects/<name>/pose`` (geometry_msgs/PoseStamped, frame ``world_frame``) for every
   object, at ``objects_rate_hz``;
@@ -63,9 +66,11 @@ from deepprompt_msgs.srv import SpawnObject
 from geometry_msgs.msg import PointStamped, PoseStamped
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message, serialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, JointState
+from std_msgs.msg import String
 from std_srvs.srv import SetBool, Trigger
 
 from deepprompt_ros.common.params import ConfigError
@@ -243,6 +248,11 @@ class SimBridge(Node):
         self._clock_pub = self.create_publisher(Clock, "/clock", 10) if p.publish_clock else None
         self._image_pub = (self.create_publisher(Image, p.camera_topic, 5)
                            if p.camera_enabled else None)
+        # the simulated robot's URDF, latched as robot_state_publisher offers it: a subscriber that
+        # joins later (RViz's RobotModel display, robot_state_publisher-style tools) still gets it
+        self._description_pub = self.create_publisher(String, "robot_description", QoSProfile(
+            depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self._description_pub.publish(String(data=spec.urdf_path.read_text()))
         # joint commands are taken by the simulation thread from a subscription of a helper node
         # that no executor spins (no executor dispatch per message at 1 kHz)
         self._command_node = rclpy.create_node(f"{self.get_name()}_command_reader",
