@@ -42,27 +42,30 @@ def server_handler(n_joints: int, repeats: int, gap_repeats: int, gap: float = 0
     """Median ms of ``PrimitiveServerCore.condition`` on the shipped Gen3 lite model (as primitive 'reach',
     bench_ros's request: 5 random via-points near home + the 'object' context, 100-point preview): back to
     back, then with ``gap`` s of sleep before each call (wall and thread CPU time)."""
-    from deepprompt_ros.server import service_logic as sl
+    from deepprompt_ros.server.config import ServerConfig, robot_limits
+    from deepprompt_ros.server.primitives_file import PrimitiveEntry, load_primitive
+    from deepprompt_ros.server.requests import Code, ConditionRequest, ContextIn, ViaPointIn
+    from deepprompt_ros.server.service import PrimitiveServerCore
     from deepprompt_ros.robots.spec import load_robot
 
     spec = load_robot("gen3_lite")
-    cfg = sl.ServerConfig()
-    entry = sl.PrimitiveEntry("reach", str(ROOT / "models" / "gen3_lite_reach.safetensors"))
-    core = sl.PrimitiveServerCore({"reach": sl.load_primitive(entry, spec.joint_names, pathlib.Path)}, cfg,
-                                  sl.robot_limits(spec, cfg))
+    cfg = ServerConfig()
+    entry = PrimitiveEntry("reach", str(ROOT / "models" / "gen3_lite_reach.safetensors"))
+    core = PrimitiveServerCore({"reach": load_primitive(entry, spec.joint_names, pathlib.Path)}, cfg,
+                               robot_limits(spec, cfg))
     rng = np.random.default_rng(1)
     home = np.asarray(spec.home)
 
     def request():
         x = np.sort(rng.uniform(0, 1, 5))
         y = home + rng.normal(0, 0.05, (5, n_joints))
-        vps = [sl.ViaPointIn(float(a), tuple(b), (), False, 1.0) for a, b in zip(x, y)]
-        ctx = [sl.ContextIn("object", tuple(rng.uniform(-0.3, 0.3, 3)), (), False, 1.0)]
-        return sl.ConditionRequest("reach", vps, ctx, False, 0, 0.0, 100)
+        vps = [ViaPointIn(float(a), tuple(b), (), False, 1.0) for a, b in zip(x, y)]
+        ctx = [ContextIn("object", tuple(rng.uniform(-0.3, 0.3, 3)), (), False, 1.0)]
+        return ConditionRequest("reach", vps, ctx, False, 0, 0.0, 100)
 
     reqs = [request() for _ in range(repeats + 20)]
     for r in reqs[:20]:
-        assert core.condition(r).code == sl.Code.SUCCESS
+        assert core.condition(r).code == Code.SUCCESS
     warm = []
     for r in reqs[20:]:
         t0 = time.perf_counter()
@@ -112,7 +115,7 @@ def main(argv=None) -> int:
     condition_ms = statistics.median(t_deep)
     promp_ms = statistics.median(t_pro)
 
-    # the primitive_server's Condition handler without ROS (core.server_logic: request checks, aggregation,
+    # the primitive_server's Condition handler without ROS (server.service: request checks, aggregation,
     # handle, preview of mean and std) for bench_ros's request: back to back, and with 40 ms between calls
     # (bench_ros's client rate) — wall and CPU time of this thread, caches cold again at every call
     handler_ms, handler_gap_ms, handler_gap_cpu_ms = server_handler(prim.n_joints, 50 if args.quick else 1000,

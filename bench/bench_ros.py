@@ -487,7 +487,7 @@ def main(argv=None) -> int:
         return 0
 
     from deepprompt_ros.robots.spec import load_robot
-    from deepprompt_ros.server.service_logic import ServerConfig, robot_limits
+    from deepprompt_ros.server.config import ServerConfig, robot_limits
     from deepprompt_ros.ros.testing import NodeProcess, isolated_ros_env
 
     # SIGTERM (kill, timeout) ends the run like an error: the finally below stops every process started

@@ -1,5 +1,5 @@
 """Round trips of the primitive-server conversions in deepprompt_ros.ros.conversions:
-deepprompt_msgs requests/responses <-> the plain types of core.server_logic, and
+deepprompt_msgs requests/responses <-> the plain types of deepprompt_ros.server.requests, and
 trajectory_msgs/JointTrajectory <-> arrays. Messages also go through CDR serialization."""
 import numpy as np
 import pytest
@@ -9,7 +9,8 @@ from deepprompt_msgs.msg import Context, TrajectoryPreview
 from deepprompt_msgs.srv import Condition, Sample
 from trajectory_msgs.msg import JointTrajectory
 
-from deepprompt_ros.server import service_logic as sl
+from deepprompt_ros.server.images import decode_image
+from deepprompt_ros.server.requests import Preview, PrimitiveDescription, SampleResult
 from deepprompt_ros.ros import conversions as conv
 
 
@@ -43,12 +44,12 @@ def test_contexts_keep_values_and_raw_image_bytes():
     assert back[0].use_weight and back[0].weight == 0.5 and back[0].images == ()
     im = back[1].images[0]
     assert (im.height, im.width, im.encoding, im.step) == (4, 5, "bgr8", 15)
-    np.testing.assert_array_equal(sl.decode_image(im, (4, 5)), img)  # decoded to RGB by the server
+    np.testing.assert_array_equal(decode_image(im, (4, 5)), img)  # decoded to RGB by the server
 
 
 def test_preview_round_trip_and_row_major_layout():
     rng = np.random.default_rng(2)
-    p = sl.Preview(("a", "b", "c"), np.linspace(0, 1, 4), rng.normal(size=(4, 3)), rng.random((4, 3)))
+    p = Preview(("a", "b", "c"), np.linspace(0, 1, 4), rng.normal(size=(4, 3)), rng.random((4, 3)))
     msg = cdr(conv.preview_to_msg(p))
     assert (msg.n_points, msg.n_joints) == (4, 3)
     assert msg.mean[2 * 3 + 1] == p.mean[2, 1]  # mean[t * n_joints + j]
@@ -63,8 +64,8 @@ def test_preview_round_trip_and_row_major_layout():
 
 
 def test_primitive_info_carries_every_field():
-    d = sl.PrimitiveDescription("reach", ("j1", "j2"), np.array([-1.0, -2.0]), np.array([1.0, 2.0]), "linear",
-                                ("object",), (3,), True, 64, 48, "rgb8", 16, "reach an object")
+    d = PrimitiveDescription("reach", ("j1", "j2"), np.array([-1.0, -2.0]), np.array([1.0, 2.0]), "linear",
+                             ("object",), (3,), True, 64, 48, "rgb8", 16, "reach an object")
     m = cdr(conv.primitive_info_to_msg(d))
     assert (m.name, list(m.joint_names), list(m.position_lower), list(m.position_upper)) == (
         "reach", ["j1", "j2"], [-1.0, -2.0], [1.0, 2.0])
@@ -75,7 +76,7 @@ def test_primitive_info_carries_every_field():
 
 def test_samples_round_trip_and_layout():
     s = np.random.default_rng(3).normal(size=(2, 5, 3))
-    res = cdr(conv.samples_to_response(sl.SampleResult(("a", "b", "c"), np.linspace(0, 1, 5), s), Sample.Response()))
+    res = cdr(conv.samples_to_response(SampleResult(("a", "b", "c"), np.linspace(0, 1, 5), s), Sample.Response()))
     assert (res.n_samples, res.n_points, res.n_joints) == (2, 5, 3)
     assert res.samples[(1 * 5 + 3) * 3 + 2] == s[1, 3, 2]
     np.testing.assert_array_equal(conv.samples_from_response(res), s)

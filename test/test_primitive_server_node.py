@@ -21,7 +21,7 @@ from rclpy.action import ActionClient
 from sensor_msgs.msg import Image, JointState
 from trajectory_msgs.msg import JointTrajectory
 
-from deepprompt_ros.server import service_logic as sl
+from deepprompt_ros.server.config import ServerConfig, robot_limits
 from deepprompt_ros.model.checkpoint import Normalization, save_checkpoint
 from deepprompt_ros.data.dataset import Demonstration, DemoDataset
 from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
@@ -32,7 +32,7 @@ from deepprompt_ros.ros import conversions as conv
 from deepprompt_ros.ros.testing import NodeProcess, RosTestClient, isolated_ros_env
 
 SPEC = load_robot("gen3_lite")
-LIMITS = sl.robot_limits(SPEC, sl.ServerConfig())
+LIMITS = robot_limits(SPEC, ServerConfig())
 DT = 1e-3
 SRV = "/primitive_server"
 JTC_TOPIC = "/joint_trajectory_controller/joint_trajectory"
@@ -216,7 +216,7 @@ def test_condition_preview_passes_near_the_via_point_and_refine_meets_it(setup):
     assert np.abs(p_ref.mean[50] - target).max() <= 1e-6
     assert refined.refine_max_error <= 1e-6 and refined.reachable and refined.refine_iterations >= 1
     assert p_ref.std.shape == (101, 6) and np.all(p_ref.std > 0)
-    assert refined.handle and refined.handle_expires_in == sl.ServerConfig().handle_ttl
+    assert refined.handle and refined.handle_expires_in == ServerConfig().handle_ttl
 
 
 def test_execute_streams_valid_controller_messages_and_succeeds(setup):

@@ -18,7 +18,7 @@ from deepprompt_msgs.msg import Context, ResultCode
 from deepprompt_msgs.srv import Blend, Condition, SetPhaseRate
 from rclpy.action import ActionClient
 
-from deepprompt_ros.server import service_logic as sl
+from deepprompt_ros.server.config import ServerConfig, robot_limits
 from deepprompt_ros.robots.spec import load_robot
 from deepprompt_ros.execution.limits import check_limits
 from deepprompt_ros.ros import conversions as conv
@@ -144,7 +144,7 @@ WAM_CYCLES = 3
 
 def test_wam_rhythmic_cycles_have_no_seam_and_keep_the_limits(rig_factory):
     spec = load_robot("wam")
-    limits = sl.robot_limits(spec, sl.ServerConfig())
+    limits = robot_limits(spec, ServerConfig())
     dt = 1.0 / spec.control_rate_hz
     rig = rig_factory("wam", [{"name": "shake", "model": model_path("wam_shake.safetensors")}])
     rig.wait_ready()
@@ -211,7 +211,7 @@ BLEND_DURATION = 6.0
 
 def test_gen3_lite_blend_with_live_phase_rate_changes_keeps_the_limits(rig_factory):
     spec = load_robot("gen3_lite")
-    limits = sl.robot_limits(spec, sl.ServerConfig())
+    limits = robot_limits(spec, ServerConfig())
     dt = 1.0 / spec.control_rate_hz
     rig = rig_factory("gen3_lite", [{"name": "reach", "model": model_path("gen3_lite_reach.safetensors")}])
     rig.wait_ready()

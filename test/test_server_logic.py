@@ -1,6 +1,7 @@
-"""deepprompt_ros.server.service_logic and the ROS-free control loop (ros.stream_loop): parameters,
-primitive loading, request validation with result codes, conditioning / refinement / blending /
-sampling, execution planning, and the command stream (limits, splicing, cancel, stale state).
+"""deepprompt_ros.server (config, primitives_file, images, service) and the ROS-free control loop
+(deepprompt_ros.execution: plan, stream_loop): parameters, primitive loading, request validation
+with result codes, conditioning / refinement / blending / sampling, execution planning, and the
+command stream (limits, splicing, cancel, stale state).
 
 Models are small networks with fixed random weights saved as real checkpoints (no training:
 fast); the robot is the Gen3 lite (limits from its URDF through pinocchio)."""
@@ -13,16 +14,22 @@ import pytest
 import torch
 import yaml
 
-from deepprompt_ros.server import service_logic as sl
+from deepprompt_ros.common.params import ConfigError, markdown_table
+from deepprompt_ros.execution.limits import check_limits
+from deepprompt_ros.execution.plan import ExecutionReference
+from deepprompt_ros.execution.stream_loop import (BrakeTail, ExecutionController, ExecutionGoal, MeasuredState, Stage,
+                                                  trajectory_points)
 from deepprompt_ros.model.checkpoint import Normalization, save_checkpoint
 from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
 from deepprompt_ros.robots.spec import load_robot
-from deepprompt_ros.execution.limits import check_limits
-from deepprompt_ros.execution.stream_loop import (BrakeTail, ExecutionController, ExecutionGoal, MeasuredState, Stage,
-                                            trajectory_points)
+from deepprompt_ros.server.config import PARAMETERS, ServerConfig, robot_limits
+from deepprompt_ros.server.images import decode_image
+from deepprompt_ros.server.primitives_file import PrimitiveEntry, load_primitive, load_primitives, read_primitives_file
+from deepprompt_ros.server.requests import (BlendRequest, Code, ConditionRequest, ContextIn, ExecuteRequest, ImageIn,
+                                            RequestError, SampleRequest, ViaPointIn)
+from deepprompt_ros.server.service import PrimitiveServerCore
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
-Code = sl.Code
 SPEC = load_robot("gen3_lite")
 NAMES = SPEC.joint_names
 DT = 1e-3
@@ -67,9 +74,9 @@ def models(tmp_path_factory):
 
 
 def make_core(models, config=None, names=("reach", "camera", "permuted", "wave")):
-    config = config or sl.ServerConfig()
-    prims = {n: sl.load_primitive(sl.PrimitiveEntry(n, str(models[n])), NAMES, pathlib.Path) for n in names}
-    return sl.PrimitiveServerCore(prims, config, sl.robot_limits(SPEC, config))
+    config = config or ServerConfig()
+    prims = {n: load_primitive(PrimitiveEntry(n, str(models[n])), NAMES, pathlib.Path) for n in names}
+    return PrimitiveServerCore(prims, config, robot_limits(SPEC, config))
 
 
 @pytest.fixture(scope="module")
@@ -78,11 +85,11 @@ def core(models):
 
 
 def via(phase, positions, mask=(), use_weight=False, weight=1.0):
-    return sl.ViaPointIn(phase, np.asarray(positions, dtype=float), np.asarray(mask, dtype=bool), use_weight, weight)
+    return ViaPointIn(phase, np.asarray(positions, dtype=float), np.asarray(mask, dtype=bool), use_weight, weight)
 
 
 def code_of(fn, *args):
-    with pytest.raises(sl.RequestError) as info:
+    with pytest.raises(RequestError) as info:
         fn(*args)
     return info.value.code, info.value.message
 
@@ -93,32 +100,32 @@ def code_of(fn, *args):
 def test_config_yaml_holds_exactly_the_declared_defaults():
     raw = yaml.safe_load((REPO / "config" / "primitive_server.yaml").read_text())
     values = raw["primitive_server"]["ros__parameters"]
-    assert set(values) == {p.name for p in sl.PARAMETERS}
-    assert sl.ServerConfig.from_mapping(values) == sl.ServerConfig()
+    assert set(values) == {p.name for p in PARAMETERS}
+    assert ServerConfig.from_mapping(values) == ServerConfig()
 
 
 def test_every_parameter_is_documented_with_type_default_and_range():
-    md = sl.parameters_markdown()
-    for p in sl.PARAMETERS:
+    md = markdown_table(PARAMETERS)
+    for p in PARAMETERS:
         assert f"`{p.name}`" in md and p.description
         assert p.type in ("bool", "int", "double", "string")
         if p.type in ("int", "double"):
             assert p.min is not None and p.max is not None and p.min <= p.default <= p.max, p.name
-    assert sl.ServerConfig().control_rate_hz == 0.0  # 0 = the robot's rate (1 kHz for the Gen3 lite)
+    assert ServerConfig().control_rate_hz == 0.0  # 0 = the robot's rate (1 kHz for the Gen3 lite)
 
 
 def test_invalid_parameters_are_all_reported_with_what_is_expected():
-    with pytest.raises(sl.ConfigError) as info:
-        sl.ServerConfig.from_mapping({"max_handles": 0, "stale_timeout": "fast", "loop_mode": "spin",
-                                      "velocity_scale": float("nan"), "bogus": 1})
+    with pytest.raises(ConfigError) as info:
+        ServerConfig.from_mapping({"max_handles": 0, "stale_timeout": "fast", "loop_mode": "spin",
+                                   "velocity_scale": float("nan"), "bogus": 1})
     msg = str(info.value)
     assert "max_handles = 0: expected a value in [1, 100000]" in msg
     assert "stale_timeout = 'fast': expected a number" in msg
     assert "loop_mode = 'spin': expected one of 'thread', 'timer'" in msg
-    assert "velocity_scale = nan: expected a finite number" in msg
+    assert "velocity_scale = nan: expected finite numbers" in msg
     assert "unknown parameter 'bogus'" in msg
     # ints are accepted for doubles (YAML writes 1000 for 1000.0)
-    assert sl.ServerConfig.from_mapping({"control_rate_hz": 500}).control_rate_hz == 500.0
+    assert ServerConfig.from_mapping({"control_rate_hz": 500}).control_rate_hz == 500.0
 
 
 # ================================================================================================
@@ -134,30 +141,30 @@ def test_primitives_file_keeps_valid_entries_and_explains_each_refusal(tmp_path)
         {"name": "nomodel"},
         {"name": "slow", "model": "e.safetensors", "default_duration": -1},
         "just a string"]}))
-    entries, errors = sl.read_primitives_file(f)
-    assert entries == [sl.PrimitiveEntry("reach", "a.safetensors", "", 4.0)]
+    entries, errors = read_primitives_file(f)
+    assert entries == [PrimitiveEntry("reach", "a.safetensors", "", 4.0)]
     text = "\n".join(errors)
     assert len(errors) == 6
     for part in ("appears twice", "name '9bad' is invalid", "unknown keys ['speed']", "model must be",
                  "default_duration -1", "must be a mapping"):
         assert part in text
-    with pytest.raises(sl.ConfigError, match="does not exist"):
-        sl.read_primitives_file(tmp_path / "missing.yaml")
+    with pytest.raises(ConfigError, match="does not exist"):
+        read_primitives_file(tmp_path / "missing.yaml")
     (tmp_path / "bad.yaml").write_text("primitives: 3\n")
-    with pytest.raises(sl.ConfigError, match="list 'primitives"):
-        sl.read_primitives_file(tmp_path / "bad.yaml")
+    with pytest.raises(ConfigError, match="list 'primitives"):
+        read_primitives_file(tmp_path / "bad.yaml")
 
 
 def test_shipped_primitives_file_parses():
-    entries, errors = sl.read_primitives_file(REPO / "config" / "primitives.yaml")
+    entries, errors = read_primitives_file(REPO / "config" / "primitives.yaml")
     assert not errors
     assert {e.name for e in entries} >= {"reach", "bimodal_sine"}
 
 
 def test_models_with_other_joints_or_missing_files_are_refused_the_rest_load(models):
-    entries = [sl.PrimitiveEntry("reach", str(models["reach"])), sl.PrimitiveEntry("sine", str(models["one_joint"])),
-               sl.PrimitiveEntry("gone", "/nonexistent/x.safetensors")]
-    prims, errors = sl.load_primitives(entries, NAMES, pathlib.Path)
+    entries = [PrimitiveEntry("reach", str(models["reach"])), PrimitiveEntry("sine", str(models["one_joint"])),
+               PrimitiveEntry("gone", "/nonexistent/x.safetensors")]
+    prims, errors = load_primitives(entries, NAMES, pathlib.Path)
     assert list(prims) == ["reach"]
     assert len(errors) == 2
     assert "primitive 'sine' refused" in errors[0] and "has 1 joints [joint_1] but the robot has 6 joints" in errors[0]
@@ -169,11 +176,11 @@ def test_models_with_other_joints_or_missing_files_are_refused_the_rest_load(mod
 # Condition
 # ================================================================================================
 def test_condition_reports_the_via_point_error_and_refine_meets_it(core):
-    prior = core.condition(sl.ConditionRequest("reach", preview_points=101))
+    prior = core.condition(ConditionRequest("reach", preview_points=101))
     assert prior.code == Code.SUCCESS and prior.refine_max_error == 0.0
     target = prior.preview.mean[50] + np.array([0.02, -0.02, 0.01, 0.0, 0.015, -0.01])
-    plain = core.condition(sl.ConditionRequest("reach", [via(0.5, target)], preview_points=101))
-    refined = core.condition(sl.ConditionRequest("reach", [via(0.5, target)], refine=True, preview_points=101))
+    plain = core.condition(ConditionRequest("reach", [via(0.5, target)], preview_points=101))
+    refined = core.condition(ConditionRequest("reach", [via(0.5, target)], refine=True, preview_points=101))
     assert plain.code == refined.code == Code.SUCCESS
     err_plain = np.abs(plain.preview.mean[50] - target).max()
     assert err_plain == pytest.approx(plain.refine_max_error, abs=1e-12)  # what the executed mean misses by
@@ -183,14 +190,14 @@ def test_condition_reports_the_via_point_error_and_refine_meets_it(core):
     assert refined.refine_max_error <= 1e-6
     assert refined.preview.std.shape == (101, 6) and np.all(refined.preview.std > 0)
     assert "refined in" in refined.message
-    assert refined.handle != plain.handle and refined.expires_in == sl.ServerConfig().handle_ttl
+    assert refined.handle != plain.handle and refined.expires_in == ServerConfig().handle_ttl
 
 
 def test_refine_with_joint_mask_meets_only_the_constrained_joints(core):
-    prior = core.condition(sl.ConditionRequest("reach", preview_points=11))
+    prior = core.condition(ConditionRequest("reach", preview_points=11))
     target = prior.preview.mean[5] + 0.03
     mask = [True, False, True, False, False, False]
-    r = core.condition(sl.ConditionRequest("reach", [via(0.5, target, mask)], refine=True, preview_points=11))
+    r = core.condition(ConditionRequest("reach", [via(0.5, target, mask)], refine=True, preview_points=11))
     assert r.code == Code.SUCCESS
     err = np.abs(r.preview.mean[5] - target)
     assert err[[0, 2]].max() <= 1e-6
@@ -198,8 +205,8 @@ def test_refine_with_joint_mask_meets_only_the_constrained_joints(core):
 
 
 def test_unreachable_refinement_returns_best_fit_handle_and_code(core):
-    r = core.condition(sl.ConditionRequest("reach", [via(0.3, SPEC.home + 2.0), via(0.31, SPEC.home - 2.0)],
-                                           refine=True, refine_max_iterations=30))
+    r = core.condition(ConditionRequest("reach", [via(0.3, SPEC.home + 2.0), via(0.31, SPEC.home - 2.0)],
+                                        refine=True, refine_max_iterations=30))
     assert r.code == Code.REFINEMENT_UNREACHABLE
     assert r.handle and not r.reachable and r.refine_max_error > 0.1
     assert "cannot all be met" in r.message
@@ -207,8 +214,8 @@ def test_unreachable_refinement_returns_best_fit_handle_and_code(core):
 
 
 def test_weight_zero_removes_a_via_point_exactly(core):
-    a = core.condition(sl.ConditionRequest("reach", [via(0.2, SPEC.home + 0.05)]))
-    b = core.condition(sl.ConditionRequest("reach", [via(0.2, SPEC.home + 0.05), via(0.8, SPEC.home - 0.5, (),
+    a = core.condition(ConditionRequest("reach", [via(0.2, SPEC.home + 0.05)]))
+    b = core.condition(ConditionRequest("reach", [via(0.2, SPEC.home + 0.05), via(0.8, SPEC.home - 0.5, (),
                                                                                     True, 0.0)]))
     la, lb = core.handles.get(a.handle).latent, core.handles.get(b.handle).latent
     np.testing.assert_allclose(la.mean, lb.mean, rtol=0, atol=1e-14)
@@ -216,14 +223,14 @@ def test_weight_zero_removes_a_via_point_exactly(core):
 
 
 def test_contexts_and_images_condition_the_latent(core):
-    r0 = core.condition(sl.ConditionRequest("reach"))
-    r1 = core.condition(sl.ConditionRequest("reach", contexts=[sl.ContextIn("object", np.array([0.3, 0.1, 0.2]))]))
+    r0 = core.condition(ConditionRequest("reach"))
+    r1 = core.condition(ConditionRequest("reach", contexts=[ContextIn("object", np.array([0.3, 0.1, 0.2]))]))
     assert r1.code == Code.SUCCESS
     assert np.abs(r1.preview.mean - r0.preview.mean).max() > 1e-6
-    img = sl.ImageIn(8, 8, "rgb8", 24, np.arange(192, dtype=np.uint8))
-    bgr = sl.ImageIn(8, 8, "bgr8", 24, np.arange(192, dtype=np.uint8).reshape(8, 8, 3)[:, :, ::-1].reshape(-1).copy())
-    r2 = core.condition(sl.ConditionRequest("camera", contexts=[sl.ContextIn("image", np.zeros(0), (img,))]))
-    r3 = core.condition(sl.ConditionRequest("camera", contexts=[sl.ContextIn("image", np.zeros(0), (bgr,))]))
+    img = ImageIn(8, 8, "rgb8", 24, np.arange(192, dtype=np.uint8))
+    bgr = ImageIn(8, 8, "bgr8", 24, np.arange(192, dtype=np.uint8).reshape(8, 8, 3)[:, :, ::-1].reshape(-1).copy())
+    r2 = core.condition(ConditionRequest("camera", contexts=[ContextIn("image", np.zeros(0), (img,))]))
+    r3 = core.condition(ConditionRequest("camera", contexts=[ContextIn("image", np.zeros(0), (bgr,))]))
     assert r2.code == r3.code == Code.SUCCESS
     np.testing.assert_allclose(r2.preview.mean, r3.preview.mean, atol=1e-12)  # same pixels, other encoding
 
@@ -232,9 +239,9 @@ def test_decode_image_handles_row_padding_and_alpha():
     rgb = np.arange(2 * 3 * 3, dtype=np.uint8).reshape(2, 3, 3)
     padded = np.zeros((2, 12), dtype=np.uint8)
     padded[:, :9] = rgb.reshape(2, 9)
-    np.testing.assert_array_equal(sl.decode_image(sl.ImageIn(2, 3, "rgb8", 12, padded.reshape(-1)), (2, 3)), rgb)
+    np.testing.assert_array_equal(decode_image(ImageIn(2, 3, "rgb8", 12, padded.reshape(-1)), (2, 3)), rgb)
     bgra = np.concatenate([rgb[:, :, ::-1], np.full((2, 3, 1), 255, np.uint8)], axis=2)
-    np.testing.assert_array_equal(sl.decode_image(sl.ImageIn(2, 3, "bgra8", 12, bgra.reshape(-1)), (2, 3)), rgb)
+    np.testing.assert_array_equal(decode_image(ImageIn(2, 3, "bgra8", 12, bgra.reshape(-1)), (2, 3)), rgb)
 
 
 MALFORMED = [
@@ -255,17 +262,17 @@ MALFORMED = [
      "1001 via-points; the server accepts at most 1000"),
     ("absurd preview", dict(preview_points=10_000_000), Code.INVALID_REQUEST, "preview_points = 10000000"),
     ("one preview point", dict(preview_points=1), Code.INVALID_REQUEST, "expected 0 (server default 100) or 2..10000"),
-    ("unknown context", dict(contexts=[sl.ContextIn("color", np.ones(3))]), Code.INVALID_CONTEXT,
+    ("unknown context", dict(contexts=[ContextIn("color", np.ones(3))]), Code.INVALID_CONTEXT,
      "unknown modality; primitive 'reach' accepts 'object'"),
-    ("context size", dict(contexts=[sl.ContextIn("object", np.ones(2))]), Code.INVALID_CONTEXT,
+    ("context size", dict(contexts=[ContextIn("object", np.ones(2))]), Code.INVALID_CONTEXT,
      "has 2 values; expected exactly 3"),
-    ("context NaN", dict(contexts=[sl.ContextIn("object", np.array([0, np.nan, 0]))]), Code.INVALID_CONTEXT, "NaN"),
-    ("duplicate context", dict(contexts=[sl.ContextIn("object", np.ones(3))] * 2), Code.INVALID_CONTEXT,
+    ("context NaN", dict(contexts=[ContextIn("object", np.array([0, np.nan, 0]))]), Code.INVALID_CONTEXT, "NaN"),
+    ("duplicate context", dict(contexts=[ContextIn("object", np.ones(3))] * 2), Code.INVALID_CONTEXT,
      "modality given twice"),
-    ("context weight", dict(contexts=[sl.ContextIn("object", np.ones(3), (), True, float("inf"))]),
+    ("context weight", dict(contexts=[ContextIn("object", np.ones(3), (), True, float("inf"))]),
      Code.INVALID_CONTEXT, "weight inf is invalid"),
-    ("image to a primitive without images", dict(contexts=[sl.ContextIn(
-        "image", np.zeros(0), (sl.ImageIn(8, 8, "rgb8", 24, np.zeros(192, np.uint8)),))]),
+    ("image to a primitive without images", dict(contexts=[ContextIn(
+        "image", np.zeros(0), (ImageIn(8, 8, "rgb8", 24, np.zeros(192, np.uint8)),))]),
      Code.INVALID_IMAGE, "accepts no images"),
     ("refine tolerance NaN", dict(refine=True, refine_tolerance=float("nan")), Code.INVALID_REQUEST,
      "refine_tolerance nan is invalid"),
@@ -275,32 +282,32 @@ MALFORMED = [
 
 @pytest.mark.parametrize("what,kwargs,code,part", MALFORMED, ids=[m[0] for m in MALFORMED])
 def test_malformed_condition_requests_get_the_named_code_and_message(core, what, kwargs, code, part):
-    req = sl.ConditionRequest(**{"primitive": "reach", **kwargs})
+    req = ConditionRequest(**{"primitive": "reach", **kwargs})
     got, msg = code_of(core.condition, req)
     assert got == code, msg
     assert part in msg, msg
 
 
 IMAGE_CASES = [
-    ("wrong size", sl.ImageIn(16, 8, "rgb8", 24, np.zeros(384, np.uint8)), "16x8 (height x width); the primitive expects 8x8"),
-    ("wrong encoding", sl.ImageIn(8, 8, "mono8", 8, np.zeros(64, np.uint8)), "encoding 'mono8'; expected one of"),
-    ("truncated", sl.ImageIn(8, 8, "rgb8", 24, np.zeros(100, np.uint8)), "100 bytes of data; expected step x height"),
-    ("short step", sl.ImageIn(8, 8, "rgb8", 10, np.zeros(80, np.uint8)), "step 10 bytes per row"),
+    ("wrong size", ImageIn(16, 8, "rgb8", 24, np.zeros(384, np.uint8)), "16x8 (height x width); the primitive expects 8x8"),
+    ("wrong encoding", ImageIn(8, 8, "mono8", 8, np.zeros(64, np.uint8)), "encoding 'mono8'; expected one of"),
+    ("truncated", ImageIn(8, 8, "rgb8", 24, np.zeros(100, np.uint8)), "100 bytes of data; expected step x height"),
+    ("short step", ImageIn(8, 8, "rgb8", 10, np.zeros(80, np.uint8)), "step 10 bytes per row"),
 ]
 
 
 @pytest.mark.parametrize("what,image,part", IMAGE_CASES, ids=[c[0] for c in IMAGE_CASES])
 def test_bad_images_get_invalid_image(core, what, image, part):
-    got, msg = code_of(core.condition, sl.ConditionRequest("camera", contexts=[sl.ContextIn("image", np.zeros(0),
+    got, msg = code_of(core.condition, ConditionRequest("camera", contexts=[ContextIn("image", np.zeros(0),
                                                                                            (image,))]))
     assert got == Code.INVALID_IMAGE and part in msg, msg
 
 
 def test_full_store_without_eviction_gives_handle_limit(models):
-    core = make_core(models, dataclasses.replace(sl.ServerConfig(), max_handles=2, evict_when_full=False), ("reach",))
-    core.condition(sl.ConditionRequest("reach"))
-    core.condition(sl.ConditionRequest("reach"))
-    got, msg = code_of(core.condition, sl.ConditionRequest("reach"))
+    core = make_core(models, dataclasses.replace(ServerConfig(), max_handles=2, evict_when_full=False), ("reach",))
+    core.condition(ConditionRequest("reach"))
+    core.condition(ConditionRequest("reach"))
+    got, msg = code_of(core.condition, ConditionRequest("reach"))
     assert got == Code.HANDLE_LIMIT and "max_handles" in msg
 
 
@@ -308,46 +315,46 @@ def test_full_store_without_eviction_gives_handle_limit(models):
 # Blend and Sample
 # ================================================================================================
 def test_blend_hands_over_from_a_to_b(core):
-    a = core.condition(sl.ConditionRequest("reach", [via(0.0, SPEC.home + 0.05)], preview_points=21))
-    b = core.condition(sl.ConditionRequest("reach", [via(1.0, SPEC.home - 0.05)], preview_points=21))
-    r = core.blend(sl.BlendRequest(a.handle, b.handle, preview_points=21))
+    a = core.condition(ConditionRequest("reach", [via(0.0, SPEC.home + 0.05)], preview_points=21))
+    b = core.condition(ConditionRequest("reach", [via(1.0, SPEC.home - 0.05)], preview_points=21))
+    r = core.blend(BlendRequest(a.handle, b.handle, preview_points=21))
     np.testing.assert_allclose(r.preview.mean[0], a.preview.mean[0], atol=1e-12)
     np.testing.assert_allclose(r.preview.mean[-1], b.preview.mean[-1], atol=1e-12)
     mid = r.preview.mean[10]
     assert not np.allclose(mid, a.preview.mean[10]) and not np.allclose(mid, b.preview.mean[10])
     # sample=true: one ε kept with the handle, so the executed grid is reproducible
-    s1 = core.blend(sl.BlendRequest(a.handle, b.handle, sample=True, seed=7))
-    s2 = core.blend(sl.BlendRequest(a.handle, b.handle, sample=True, seed=7))
+    s1 = core.blend(BlendRequest(a.handle, b.handle, sample=True, seed=7))
+    s2 = core.blend(BlendRequest(a.handle, b.handle, sample=True, seed=7))
     np.testing.assert_allclose(s1.preview.mean, s2.preview.mean)
-    assert np.abs(s1.preview.mean - core.blend(sl.BlendRequest(a.handle, b.handle)).preview.mean).max() > 1e-6
+    assert np.abs(s1.preview.mean - core.blend(BlendRequest(a.handle, b.handle)).preview.mean).max() > 1e-6
 
 
 def test_blend_refusals(core):
-    a = core.condition(sl.ConditionRequest("reach")).handle
-    w = core.condition(sl.ConditionRequest("permuted")).handle
-    assert code_of(core.blend, sl.BlendRequest(a, "nope"))[0] == Code.UNKNOWN_HANDLE
-    got, msg = code_of(core.blend, sl.BlendRequest(a, w))
+    a = core.condition(ConditionRequest("reach")).handle
+    w = core.condition(ConditionRequest("permuted")).handle
+    assert code_of(core.blend, BlendRequest(a, "nope"))[0] == Code.UNKNOWN_HANDLE
+    got, msg = code_of(core.blend, BlendRequest(a, w))
     assert got == Code.INVALID_REQUEST and "same primitive" in msg
-    got, msg = code_of(core.blend, sl.BlendRequest(a, a, [0.0, 0.5], [1.0]))
+    got, msg = code_of(core.blend, BlendRequest(a, a, [0.0, 0.5], [1.0]))
     assert got == Code.INVALID_REQUEST and "one weight per phase" in msg
-    got, msg = code_of(core.blend, sl.BlendRequest(a, a, [0.5, 0.2], [1.0, 0.0]))
+    got, msg = code_of(core.blend, BlendRequest(a, a, [0.5, 0.2], [1.0, 0.0]))
     assert got == Code.INVALID_REQUEST and "strictly increasing" in msg
 
 
 def test_sample_shapes_seed_and_bounds(core):
-    h = core.condition(sl.ConditionRequest("reach", [via(0.5, SPEC.home + 0.02)])).handle
-    s1 = core.sample(sl.SampleRequest(handle=h, n_samples=5, n_points=30, seed=3))
-    s2 = core.sample(sl.SampleRequest(handle=h, n_samples=5, n_points=30, seed=3))
+    h = core.condition(ConditionRequest("reach", [via(0.5, SPEC.home + 0.02)])).handle
+    s1 = core.sample(SampleRequest(handle=h, n_samples=5, n_points=30, seed=3))
+    s2 = core.sample(SampleRequest(handle=h, n_samples=5, n_points=30, seed=3))
     assert s1.samples.shape == (5, 30, 6)
     np.testing.assert_array_equal(s1.samples, s2.samples)
-    prior = core.sample(sl.SampleRequest(primitive="reach"))
+    prior = core.sample(SampleRequest(primitive="reach"))
     assert prior.samples.shape == (1, 100, 6)
-    assert code_of(core.sample, sl.SampleRequest())[0] == Code.INVALID_REQUEST
-    assert code_of(core.sample, sl.SampleRequest(primitive="nope"))[0] == Code.UNKNOWN_PRIMITIVE
-    assert code_of(core.sample, sl.SampleRequest(handle="nope"))[0] == Code.UNKNOWN_HANDLE
-    got, msg = code_of(core.sample, sl.SampleRequest(handle=h, n_samples=10**6))
+    assert code_of(core.sample, SampleRequest())[0] == Code.INVALID_REQUEST
+    assert code_of(core.sample, SampleRequest(primitive="nope"))[0] == Code.UNKNOWN_PRIMITIVE
+    assert code_of(core.sample, SampleRequest(handle="nope"))[0] == Code.UNKNOWN_HANDLE
+    got, msg = code_of(core.sample, SampleRequest(handle=h, n_samples=10**6))
     assert got == Code.INVALID_REQUEST and "max_samples" in msg
-    got, msg = code_of(core.sample, sl.SampleRequest(handle=h, n_samples=1000, n_points=10000))
+    got, msg = code_of(core.sample, SampleRequest(handle=h, n_samples=1000, n_points=10000))
     assert got == Code.INVALID_REQUEST and "max_sample_values" in msg
 
 
@@ -368,62 +375,62 @@ def test_list_describes_joints_limits_contexts_and_images(core):
 # execution planning
 # ================================================================================================
 def test_plan_grid_is_the_executed_mean_in_robot_joint_order(core):
-    r = core.condition(sl.ConditionRequest("permuted", preview_points=11))
-    plan = core.plan_execution(sl.ExecuteRequest(r.handle, duration=4.0))
+    r = core.condition(ConditionRequest("permuted", preview_points=11))
+    plan = core.plan_execution(ExecuteRequest(r.handle, duration=4.0))
     x = np.linspace(0, 1, 11)
     np.testing.assert_allclose(plan.reference.positions(x), r.preview.mean[:, ::-1], atol=1e-7)
     assert plan.duration == 4.0 and plan.phase_rate == 0.25 and not plan.rhythmic
-    assert core.plan_execution(sl.ExecuteRequest(r.handle, phase_rate=0.5)).duration == 2.0
-    assert core.plan_execution(sl.ExecuteRequest(r.handle)).duration == sl.ServerConfig().default_duration
+    assert core.plan_execution(ExecuteRequest(r.handle, phase_rate=0.5)).duration == 2.0
+    assert core.plan_execution(ExecuteRequest(r.handle)).duration == ServerConfig().default_duration
 
 
 def test_execution_reference_derivatives_follow_the_chain_rule():
     x = np.linspace(0, 1, 4001)
     y = np.stack([np.sin(2 * np.pi * x), x ** 3], axis=1)
-    ref = sl.ExecutionReference(y, periodic=False, h=0.002)
+    ref = ExecutionReference(y, periodic=False, h=0.002)
     q, qd, qdd = ref.state(0.3, 0.5, 0.1)
     dy = np.array([2 * np.pi * np.cos(0.6 * np.pi), 3 * 0.09])
     ddy = np.array([-(2 * np.pi) ** 2 * np.sin(0.6 * np.pi), 6 * 0.3])
     np.testing.assert_allclose(q, [np.sin(0.6 * np.pi), 0.027], atol=1e-6)
     np.testing.assert_allclose(qd, dy * 0.5, rtol=1e-4)
     np.testing.assert_allclose(qdd, ddy * 0.25 + dy * 0.1, rtol=1e-3)
-    per = sl.ExecutionReference(y[:, :1], periodic=True, h=0.002)
+    per = ExecutionReference(y[:, :1], periodic=True, h=0.002)
     np.testing.assert_allclose(per.state(0.999999, 1.0, 0.0)[0], per.state(0.0, 1.0, 0.0)[0], atol=1e-4)
     np.testing.assert_allclose(per.state(0.0, 1.0, 0.0)[1], [2 * np.pi], rtol=1e-4)
 
 
 def test_execute_requests_are_validated(core):
-    h = core.condition(sl.ConditionRequest("reach")).handle
-    cases = [(sl.ExecuteRequest("nope"), Code.UNKNOWN_HANDLE, "unknown handle"),
-             (sl.ExecuteRequest(h, duration=2.0, phase_rate=0.5), Code.INVALID_REQUEST, "set at most one"),
-             (sl.ExecuteRequest(h, duration=float("nan")), Code.INVALID_REQUEST, "duration nan is invalid"),
-             (sl.ExecuteRequest(h, phase_rate=-1.0), Code.INVALID_REQUEST, "phase_rate -1.0 is invalid"),
-             (sl.ExecuteRequest(h, phase_rate=1e-9), Code.INVALID_REQUEST, "out of range"),
-             (sl.ExecuteRequest(h, duration=0.05), Code.LIMIT_VIOLATION, "velocity limit is 0.5 rad/s: use a duration >=")]
+    h = core.condition(ConditionRequest("reach")).handle
+    cases = [(ExecuteRequest("nope"), Code.UNKNOWN_HANDLE, "unknown handle"),
+             (ExecuteRequest(h, duration=2.0, phase_rate=0.5), Code.INVALID_REQUEST, "set at most one"),
+             (ExecuteRequest(h, duration=float("nan")), Code.INVALID_REQUEST, "duration nan is invalid"),
+             (ExecuteRequest(h, phase_rate=-1.0), Code.INVALID_REQUEST, "phase_rate -1.0 is invalid"),
+             (ExecuteRequest(h, phase_rate=1e-9), Code.INVALID_REQUEST, "out of range"),
+             (ExecuteRequest(h, duration=0.05), Code.LIMIT_VIOLATION, "velocity limit is 0.5 rad/s: use a duration >=")]
     for req, code, part in cases:
         got, msg = code_of(core.plan_execution, req)
         assert got == code and part in msg, msg
-    w = core.condition(sl.ConditionRequest("wave")).handle
-    got, msg = code_of(core.plan_execution, sl.ExecuteRequest(w, duration=30.0, cycles=10**7))
+    w = core.condition(ConditionRequest("wave")).handle
+    got, msg = code_of(core.plan_execution, ExecuteRequest(w, duration=30.0, cycles=10**7))
     assert got == Code.INVALID_REQUEST and "max_cycles" in msg
-    assert core.plan_execution(sl.ExecuteRequest(w, duration=30.0, cycles=3)).cycles == 3
+    assert core.plan_execution(ExecuteRequest(w, duration=30.0, cycles=3)).cycles == 3
 
 
 def test_trajectory_outside_the_position_limits_is_refused(models, tmp_path):
     mean = SPEC.upper - 0.01  # the decoder's output sits around the upper limits
     path = save_model(tmp_path / "edge.safetensors", y_mean=mean, y_std=0.2)
-    prims = {"edge": sl.load_primitive(sl.PrimitiveEntry("edge", str(path)), NAMES, pathlib.Path)}
-    core = sl.PrimitiveServerCore(prims, sl.ServerConfig(), sl.robot_limits(SPEC, sl.ServerConfig()))
-    h = core.condition(sl.ConditionRequest("edge")).handle
-    got, msg = code_of(core.plan_execution, sl.ExecuteRequest(h, duration=30.0))
+    prims = {"edge": load_primitive(PrimitiveEntry("edge", str(path)), NAMES, pathlib.Path)}
+    core = PrimitiveServerCore(prims, ServerConfig(), robot_limits(SPEC, ServerConfig()))
+    h = core.condition(ConditionRequest("edge")).handle
+    got, msg = code_of(core.plan_execution, ExecuteRequest(h, duration=30.0))
     assert got == Code.LIMIT_VIOLATION and "leaves the position limits" in msg and "upper limit" in msg
 
 
 # ================================================================================================
 # the command stream (ExecutionController, as the control thread runs it)
 # ================================================================================================
-CFG = sl.ServerConfig()
-LIMITS = sl.robot_limits(SPEC, CFG)
+CFG = ServerConfig()
+LIMITS = robot_limits(SPEC, CFG)
 
 
 class Run:
@@ -459,10 +466,10 @@ class Run:
 
 
 def plan_for(core, target_offset=0.03, duration=3.0, seed_phase=0.5):
-    prior = core.condition(sl.ConditionRequest("reach", preview_points=11))
-    r = core.condition(sl.ConditionRequest("reach", [via(seed_phase, prior.preview.mean[5] + target_offset)],
-                                           refine=True))
-    return core.plan_execution(sl.ExecuteRequest(r.handle, duration=duration))
+    prior = core.condition(ConditionRequest("reach", preview_points=11))
+    r = core.condition(ConditionRequest("reach", [via(seed_phase, prior.preview.mean[5] + target_offset)],
+                                        refine=True))
+    return core.plan_execution(ExecuteRequest(r.handle, duration=duration))
 
 
 def test_goal_runs_from_measured_state_to_rest_at_the_end_within_limits(core):
@@ -602,8 +609,8 @@ def test_trajectory_snapshots_and_brake_tail_make_valid_controller_messages(core
 
 
 def test_reverse_runs_the_primitive_backwards(core):
-    r = core.condition(sl.ConditionRequest("reach"))
-    plan = core.plan_execution(sl.ExecuteRequest(r.handle, duration=3.0, reverse=True))
+    r = core.condition(ConditionRequest("reach"))
+    plan = core.plan_execution(ExecuteRequest(r.handle, duration=3.0, reverse=True))
     assert plan.start_phase == 1.0 and plan.end_phase == 0.0
     run = Run(plan.reference.positions([1.0])[0])
     goal = ExecutionGoal(plan)
@@ -618,10 +625,10 @@ def test_reverse_runs_the_primitive_backwards(core):
 
 def test_rhythmic_goal_runs_its_cycles_without_a_seam(tmp_path):
     path = save_model(tmp_path / "wave.safetensors", seed=4, phase_type="rhythmic", y_std=0.004)
-    prims = {"wave": sl.load_primitive(sl.PrimitiveEntry("wave", str(path)), NAMES, pathlib.Path)}
-    core = sl.PrimitiveServerCore(prims, CFG, LIMITS)
-    h = core.condition(sl.ConditionRequest("wave")).handle
-    plan = core.plan_execution(sl.ExecuteRequest(h, duration=1.5, cycles=2))
+    prims = {"wave": load_primitive(PrimitiveEntry("wave", str(path)), NAMES, pathlib.Path)}
+    core = PrimitiveServerCore(prims, CFG, LIMITS)
+    h = core.condition(ConditionRequest("wave")).handle
+    plan = core.plan_execution(ExecuteRequest(h, duration=1.5, cycles=2))
     ref = plan.reference
     np.testing.assert_allclose(ref.positions([0.0]), ref.positions([1.0]), atol=1e-12)  # periodic
     run = Run(ref.positions([0.0])[0])
@@ -637,9 +644,9 @@ def test_rhythmic_goal_runs_its_cycles_without_a_seam(tmp_path):
 
 def test_linearized_preview_std_matches_sampling_for_a_decoder_linear_in_z(models):
     lin = make_core(models, names=("reach",))
-    mc = make_core(models, dataclasses.replace(sl.ServerConfig(), preview_std_method="sampled",
+    mc = make_core(models, dataclasses.replace(ServerConfig(), preview_std_method="sampled",
                                                preview_std_samples=4000), ("reach",))
-    req = sl.ConditionRequest("reach", [via(0.3, SPEC.home + 0.01)], preview_points=26)
+    req = ConditionRequest("reach", [via(0.3, SPEC.home + 0.01)], preview_points=26)
     a, b = lin.condition(req).preview.std, mc.condition(req).preview.std
     rel = np.abs(a - b) / b
     assert np.median(rel) < 0.03  # Monte-Carlo error of 4000 samples ~ 1 %

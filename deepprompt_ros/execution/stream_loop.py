@@ -9,7 +9,7 @@ Per control tick (period dt = 1 / control rate):
    change), joint-state staleness and the tracking-error bound are checked;
 3. ONE new sample, ``lookahead_ticks`` periods ahead, is computed: the phase clock gives
    x = τ(t), the dense grid of the executed mean gives the reference (q, q̇, q̈) at x
-   (:class:`~deepprompt_ros.server.service_logic.ExecutionReference`), and Ruckig
+   (:class:`~deepprompt_ros.execution.plan.ExecutionReference`), and Ruckig
    (:class:`~deepprompt_ros.execution.ruckig_streamer.RuckigStreamer`) turns it into a command within the
    velocity, acceleration, jerk and position limits;
 4. every 1/trajectory_rate a snapshot of the buffered future samples goes to a second thread that
@@ -42,7 +42,9 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
-from deepprompt_ros.server.service_logic import Code, ExecutionPlan, RequestError, ServerConfig
+from deepprompt_ros.execution.plan import ExecutionPlan
+from deepprompt_ros.server.config import ServerConfig
+from deepprompt_ros.server.requests import Code, RequestError
 from deepprompt_ros.execution.limits import JointLimits
 from deepprompt_ros.execution.ruckig_streamer import RuckigStreamer, StreamStatus
 

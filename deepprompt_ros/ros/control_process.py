@@ -41,7 +41,7 @@ import threading  # noqa: E402
 import time  # noqa: E402
 from multiprocessing.connection import Connection  # noqa: E402
 
-from deepprompt_ros.server.service_logic import Code, RequestError  # noqa: E402
+from deepprompt_ros.server.requests import Code, RequestError  # noqa: E402
 from deepprompt_ros.execution.stream_loop import ExecutionGoal, Outcome, Stage  # noqa: E402
 from deepprompt_ros.ros.fastpath import realtime  # noqa: E402
 

@@ -21,6 +21,8 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion
 from sensor_msgs.msg import Image, JointState
 
+from deepprompt_ros.server.requests import ContextIn, ImageIn, ViaPointIn
+
 __all__ = [
     # time stamps
     "stamp_to_ns", "ns_to_stamp", "stamp_to_sec", "sec_to_stamp",
@@ -363,8 +365,7 @@ def context_vector(msg, *, pose_fields: str = "position") -> np.ndarray:
 # ----------------------------------------------------------------------------------------------
 # primitive server (deepprompt_msgs requests / responses, trajectory_msgs output)
 # ----------------------------------------------------------------------------------------------
-# The plain request / result types live in deepprompt_ros.server.service_logic (imported lazily:
-# it pulls in torch, which nodes that do not serve primitives should not pay for).
+# The plain request / result types are those of deepprompt_ros.server.requests (numpy only).
 
 def sec_to_duration(t: float):
     """Float seconds (finite, >= 0) -> ``builtin_interfaces/Duration`` (rounded to the ns)."""
@@ -382,10 +383,8 @@ def duration_to_sec(d) -> float:
 
 
 def via_points_from_msgs(msgs) -> list:
-    """``deepprompt_msgs/ViaPoint[]`` -> list of ``server_logic.ViaPointIn`` (no validation here:
+    """``deepprompt_msgs/ViaPoint[]`` -> list of ``server.requests.ViaPointIn`` (no validation here:
     the server checks phases, sizes and weights against the primitive)."""
-    from deepprompt_ros.server.service_logic import ViaPointIn
-
     return [ViaPointIn(float(m.phase), np.asarray(m.positions, dtype=np.float64),
                        np.asarray(m.joint_mask, dtype=bool), bool(m.use_weight), float(m.weight))
             for m in msgs]
@@ -419,10 +418,8 @@ def via_points_to_msgs(phases, positions, joint_masks=None, weights=None) -> lis
 
 
 def image_fields(msg: Image):
-    """``sensor_msgs/Image`` -> ``server_logic.ImageIn`` (raw bytes, no copy; the server checks
+    """``sensor_msgs/Image`` -> ``server.requests.ImageIn`` (raw bytes, no copy; the server checks
     encoding and size against the primitive)."""
-    from deepprompt_ros.server.service_logic import ImageIn
-
     try:
         buf = np.frombuffer(msg.data, dtype=np.uint8)
     except TypeError:
@@ -431,16 +428,14 @@ def image_fields(msg: Image):
 
 
 def contexts_from_msgs(msgs) -> list:
-    """``deepprompt_msgs/Context[]`` -> list of ``server_logic.ContextIn``."""
-    from deepprompt_ros.server.service_logic import ContextIn
-
+    """``deepprompt_msgs/Context[]`` -> list of ``server.requests.ContextIn``."""
     return [ContextIn(str(m.modality), np.asarray(m.values, dtype=np.float64),
                       tuple(image_fields(im) for im in m.images), bool(m.use_weight), float(m.weight))
             for m in msgs]
 
 
 def preview_to_msg(preview):
-    """``server_logic.Preview`` (phases (T,), mean/std (T, d)) -> ``deepprompt_msgs/TrajectoryPreview``
+    """``server.requests.Preview`` (phases (T,), mean/std (T, d)) -> ``deepprompt_msgs/TrajectoryPreview``
     (row-major T x d)."""
     from deepprompt_msgs.msg import TrajectoryPreview
 
@@ -476,7 +471,7 @@ def preview_from_msg(msg) -> PreviewArrays:
 
 
 def primitive_info_to_msg(desc):
-    """``server_logic.PrimitiveDescription`` -> ``deepprompt_msgs/PrimitiveInfo``."""
+    """``server.requests.PrimitiveDescription`` -> ``deepprompt_msgs/PrimitiveInfo``."""
     from deepprompt_msgs.msg import PrimitiveInfo
 
     return PrimitiveInfo(
@@ -490,7 +485,7 @@ def primitive_info_to_msg(desc):
 
 
 def samples_to_response(result, response):
-    """Fill a ``Sample.Response`` from ``server_logic.SampleResult`` (samples (S, T, d), row-major)."""
+    """Fill a ``Sample.Response`` from ``server.requests.SampleResult`` (samples (S, T, d), row-major)."""
     s = np.asarray(result.samples, dtype=np.float64)
     response.joint_names = list(result.joint_names)
     response.phases = np.asarray(result.phases, dtype=np.float64).tolist()

@@ -2,7 +2,7 @@
 
 Run: ``ros2 run deepprompt_ros primitive_server [--ros-args --params-file config/primitive_server.yaml]``
 (or ``python -m deepprompt_ros.ros.primitive_server``). Parameters: the fields of
-:class:`deepprompt_ros.server.service_logic.ServerConfig` (``parameters_markdown()`` renders them).
+:class:`deepprompt_ros.server.config.ServerConfig` (``python -m deepprompt_ros.server.config`` prints them).
 
 Interfaces (``~`` = the node's name, ``/primitive_server`` by default):
 
@@ -63,7 +63,12 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 
 from deepprompt_ros import paths
-from deepprompt_ros.server import service_logic as sl
+from deepprompt_ros.common.params import ConfigError
+from deepprompt_ros.server.config import PARAMETERS, ServerConfig, robot_limits
+from deepprompt_ros.server.primitives_file import load_primitives, read_primitives_file
+from deepprompt_ros.server.requests import (BlendRequest, Code, ConditionRequest, ExecuteRequest, RequestError,
+                                            SampleRequest)
+from deepprompt_ros.server.service import PrimitiveServerCore
 from deepprompt_ros.ros import conversions as conv
 from deepprompt_ros.ros.control_process import ControlProcess
 from deepprompt_ros.ros.loop_io import LoopIO, TrajectorySerializer
@@ -74,7 +79,7 @@ __all__ = ["PrimitiveServer", "TrajectorySerializer", "main"]
 
 
 class PrimitiveServer(Node):
-    """The node: wiring only (logic in core.server_logic and ros.stream_loop)."""
+    """The node: wiring only (logic in deepprompt_ros.server and deepprompt_ros.execution)."""
 
     def __init__(self, **kwargs):
         super().__init__("primitive_server", **kwargs)
@@ -86,8 +91,8 @@ class PrimitiveServer(Node):
         try:
             self.robot = load_robot(cfg.robot)
         except (ValueError, FileNotFoundError, OSError) as exc:
-            raise sl.ConfigError(f"robot '{cfg.robot}' cannot be loaded: {exc}") from None
-        self.limits = sl.robot_limits(self.robot, cfg)
+            raise ConfigError(f"robot '{cfg.robot}' cannot be loaded: {exc}") from None
+        self.limits = robot_limits(self.robot, cfg)
         self.names = list(self.robot.joint_names)
         rate = cfg.control_rate_hz or self.robot.control_rate_hz
         topic = f"{cfg.controller}/joint_trajectory"
@@ -109,7 +114,7 @@ class PrimitiveServer(Node):
             if not self._in_process:
                 self.loop.shutdown()
             raise
-        self.core = sl.PrimitiveServerCore(prims, cfg, self.limits)
+        self.core = PrimitiveServerCore(prims, cfg, self.limits)
         if self._in_process:
             # the loop's publishers and joint_states reader on this node (see ros.loop_io): joint_states
             # are taken by the control thread from a subscription of a helper node that no executor
@@ -125,7 +130,7 @@ class PrimitiveServer(Node):
         elif not self.loop.wait_ready(60.0):
             # its publishers exist before this node offers Execute (subscribers discover them meanwhile)
             self.loop.shutdown()
-            raise sl.ConfigError("the control process did not start within 60 s (see the log above)")
+            raise ConfigError("the control process did not start within 60 s (see the log above)")
         # time spent inside each service callback (s), the latest 4096 calls: the server's share of a round trip
         self._handled = {name: collections.deque(maxlen=4096)
                          for name in ("condition", "blend", "sample", "list_primitives", "set_phase_rate")}
@@ -166,9 +171,9 @@ class PrimitiveServer(Node):
                  f"{cfg.command_topic or '(off)'} and {topic if cfg.controller else '(no JointTrajectory)'}")
 
     # ------------------------------------------------------------------ start-up
-    def _read_parameters(self) -> sl.ServerConfig:
+    def _read_parameters(self) -> ServerConfig:
         values, errors = {}, []
-        for p in sl.PARAMETERS:
+        for p in PARAMETERS:
             desc = ParameterDescriptor(description=p.description, read_only=True, dynamic_typing=True)
             if p.min is not None and p.type == "double":
                 desc.floating_point_range = [FloatingPointRange(from_value=float(p.min), to_value=float(p.max))]
@@ -185,16 +190,16 @@ class PrimitiveServer(Node):
                 except Exception as exc:
                     errors.append(f"{p.name}: {exc}")
         if errors:
-            raise sl.ConfigError("invalid parameters:\n  " + "\n  ".join(errors))
-        return sl.ServerConfig.from_mapping(values)
+            raise ConfigError("invalid parameters:\n  " + "\n  ".join(errors))
+        return ServerConfig.from_mapping(values)
 
-    def _load_primitives(self, cfg: sl.ServerConfig) -> dict:
+    def _load_primitives(self, cfg: ServerConfig) -> dict:
         log = self.get_logger()
         try:
             file = cfg.primitives_file or str(paths.find_data_file("config", "primitives.yaml"))
         except FileNotFoundError as exc:
-            raise sl.ConfigError(f"no primitives file: {exc}; set the parameter primitives_file") from None
-        entries, errors = sl.read_primitives_file(file)
+            raise ConfigError(f"no primitives file: {exc}; set the parameter primitives_file") from None
+        entries, errors = read_primitives_file(file)
         if cfg.models_dir:
             def resolve(name):
                 path = pathlib.Path(name)
@@ -204,12 +209,12 @@ class PrimitiveServer(Node):
                 return path
         else:
             resolve = functools.partial(paths.find_data_file, "models")
-        prims, load_errors = sl.load_primitives(entries, self.robot.joint_names, resolve)
+        prims, load_errors = load_primitives(entries, self.robot.joint_names, resolve)
         for msg in errors + load_errors:
             log.error(msg)
         if not prims:
-            raise sl.ConfigError(f"no servable primitive in '{file}' ({len(entries)} entries, "
-                                 f"{len(errors) + len(load_errors)} refused, see above)")
+            raise ConfigError(f"no servable primitive in '{file}' ({len(entries)} entries, "
+                              f"{len(errors) + len(load_errors)} refused, see above)")
         return prims
 
     # ------------------------------------------------------------------ services
@@ -221,13 +226,13 @@ class PrimitiveServer(Node):
             t0 = time.perf_counter()
             try:
                 fn(request, response)
-                response.success = response.code.value == sl.Code.SUCCESS
+                response.success = response.code.value == Code.SUCCESS
                 return response
-            except sl.RequestError as exc:
+            except RequestError as exc:
                 code, msg = exc.code, exc.message
             except Exception as exc:  # never let an exception escape a callback
                 self.get_logger().error(f"{name} failed:\n{traceback.format_exc()}")
-                code, msg = sl.Code.INTERNAL_ERROR, f"internal error in {name}: {type(exc).__name__}: {exc}"
+                code, msg = Code.INTERNAL_ERROR, f"internal error in {name}: {type(exc).__name__}: {exc}"
             finally:
                 handled.append(time.perf_counter() - t0)
             response = type(response)()
@@ -249,7 +254,7 @@ class PrimitiveServer(Node):
     def _condition(self, req, res) -> None:
         self.core.check_condition_sizes(len(req.via_points), len(req.contexts),
                                         [len(c.images) for c in req.contexts], req.preview_points)
-        r = self.core.condition(sl.ConditionRequest(
+        r = self.core.condition(ConditionRequest(
             req.primitive, conv.via_points_from_msgs(req.via_points), conv.contexts_from_msgs(req.contexts),
             bool(req.refine), int(req.refine_max_iterations), float(req.refine_tolerance), int(req.preview_points)))
         res.code.value, res.message, res.handle, res.handle_expires_in = int(r.code), r.message, r.handle, r.expires_in
@@ -257,14 +262,14 @@ class PrimitiveServer(Node):
         res.refine_max_error, res.refine_iterations, res.reachable = r.refine_max_error, r.refine_iterations, r.reachable
 
     def _blend(self, req, res) -> None:
-        r = self.core.blend(sl.BlendRequest(req.handle_a, req.handle_b, req.schedule_phases, req.schedule_weights,
-                                            int(req.preview_points), bool(req.sample), int(req.seed)))
+        r = self.core.blend(BlendRequest(req.handle_a, req.handle_b, req.schedule_phases, req.schedule_weights,
+                                         int(req.preview_points), bool(req.sample), int(req.seed)))
         res.handle, res.handle_expires_in, res.preview = r.handle, r.expires_in, conv.preview_to_msg(r.preview)
         res.message = f"blended into handle '{r.handle}'"
 
     def _sample(self, req, res) -> None:
-        r = self.core.sample(sl.SampleRequest(req.handle, req.primitive, int(req.n_samples), int(req.n_points),
-                                              int(req.seed)))
+        r = self.core.sample(SampleRequest(req.handle, req.primitive, int(req.n_samples), int(req.n_points),
+                                           int(req.seed)))
         conv.samples_to_response(r, res)
         res.message = f"{res.n_samples} trajectories of {res.n_points} points"
 
@@ -275,8 +280,8 @@ class PrimitiveServer(Node):
     def _set_rate(self, req, res) -> None:
         rate = req.phase_rate
         if not math.isfinite(rate) or abs(rate) > 1.0 / self.core.MIN_DURATION:
-            raise sl.RequestError(sl.Code.INVALID_REQUEST, f"phase_rate {rate!r} is invalid; expected a finite "
-                                  f"number with |phase_rate| <= {1.0 / self.core.MIN_DURATION:g} /s")
+            raise RequestError(Code.INVALID_REQUEST, f"phase_rate {rate!r} is invalid; expected a finite "
+                               f"number with |phase_rate| <= {1.0 / self.core.MIN_DURATION:g} /s")
         goal = self.loop.active_goal
         if goal is not None and self.cfg.check_feasibility:
             self.core.check_rate(goal.plan.reference, rate)
@@ -288,10 +293,10 @@ class PrimitiveServer(Node):
         g = goal_handle.request
         result = Execute.Result()
         try:
-            plan = self.core.plan_execution(sl.ExecuteRequest(g.handle, g.duration, g.phase_rate, g.cycles, g.reverse))
+            plan = self.core.plan_execution(ExecuteRequest(g.handle, g.duration, g.phase_rate, g.cycles, g.reverse))
             age = self.loop.measured_age()
             if age > self.cfg.stale_timeout and self.loop.active_goal is None:
-                raise sl.RequestError(sl.Code.ROBOT_STATE_STALE, (
+                raise RequestError(Code.ROBOT_STATE_STALE, (
                     f"no joint_states on '{self.cfg.joint_states_topic}' for {age:.3f} s" if math.isfinite(age)
                     else f"no joint_states received on '{self.cfg.joint_states_topic}'")
                     + f" (stale_timeout {self.cfg.stale_timeout:g} s); is the robot running?")
@@ -309,19 +314,19 @@ class PrimitiveServer(Node):
             result.code.value, result.message = int(out.code), out.message
             result.max_tracking_error, result.final_phase = out.max_tracking_error, out.final_phase
             result.cycles_completed = int(out.cycles_completed)
-        except sl.RequestError as exc:
+        except RequestError as exc:
             result.code.value, result.message = int(exc.code), exc.message
         except Exception as exc:
             self.get_logger().error(f"execute failed:\n{traceback.format_exc()}")
-            result.code.value, result.message = int(sl.Code.INTERNAL_ERROR), f"internal error: {exc!r}"
-        result.success = result.code.value == sl.Code.SUCCESS
+            result.code.value, result.message = int(Code.INTERNAL_ERROR), f"internal error: {exc!r}"
+        result.success = result.code.value == Code.SUCCESS
         self.get_logger().info(
             f"execute '{g.handle}': code {result.code.value} ({result.message}); control loop so far: "
             f"{self.loop.summary()}; {self.handling_summary()}; {self.gc.summary()}")
         try:
             if result.success:
                 goal_handle.succeed()
-            elif result.code.value == sl.Code.CANCELED and goal_handle.is_cancel_requested:
+            elif result.code.value == Code.CANCELED and goal_handle.is_cancel_requested:
                 goal_handle.canceled()
             else:
                 goal_handle.abort()
@@ -387,7 +392,7 @@ def main(args=None) -> int:
         executor = MultiThreadedExecutor(num_threads=6)
         executor.add_node(node)
         executor.spin()
-    except sl.ConfigError as exc:
+    except ConfigError as exc:
         rclpy.logging.get_logger("primitive_server").fatal(f"refusing to start: {exc}")
         code = 2
     except (KeyboardInterrupt, ExternalShutdownException):
