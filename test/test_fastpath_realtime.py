@@ -98,7 +98,8 @@ def test_freeze_startup_objects_freezes_and_the_monitor_counts_collections():
 
 
 def test_stream_loop_threads_use_the_injected_thread_setup():
-    from deepprompt_ros.execution.stream_loop import ExecutionController, StreamLoop
+    from deepprompt_ros.execution.controller import ExecutionController
+    from deepprompt_ros.execution.stream_loop import StreamLoop
     from deepprompt_ros.execution.limits import JointLimits
     from deepprompt_ros.server.config import ServerConfig
 

@@ -15,10 +15,10 @@ import torch
 import yaml
 
 from deepprompt_ros.common.params import ConfigError, markdown_table
+from deepprompt_ros.execution.brake_tail import BrakeTail, trajectory_points
+from deepprompt_ros.execution.controller import ExecutionController, ExecutionGoal, MeasuredState, Stage
 from deepprompt_ros.execution.limits import check_limits
 from deepprompt_ros.execution.plan import ExecutionReference
-from deepprompt_ros.execution.stream_loop import (BrakeTail, ExecutionController, ExecutionGoal, MeasuredState, Stage,
-                                                  trajectory_points)
 from deepprompt_ros.model.checkpoint import Normalization, save_checkpoint
 from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
 from deepprompt_ros.robots.spec import load_robot

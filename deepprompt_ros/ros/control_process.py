@@ -42,7 +42,7 @@ import time  # noqa: E402
 from multiprocessing.connection import Connection  # noqa: E402
 
 from deepprompt_ros.server.requests import Code, RequestError  # noqa: E402
-from deepprompt_ros.execution.stream_loop import ExecutionGoal, Outcome, Stage  # noqa: E402
+from deepprompt_ros.execution.controller import ExecutionGoal, Outcome, Stage  # noqa: E402
 from deepprompt_ros.ros.fastpath import realtime  # noqa: E402
 
 __all__ = ["ControlProcess", "main"]
@@ -271,7 +271,8 @@ def _child(fd: int, parent_pid: int) -> int:
     from rclpy.signals import SignalHandlerOptions
 
     from deepprompt_ros.ros.loop_io import LoopIO
-    from deepprompt_ros.execution.stream_loop import ExecutionController, StreamLoop
+    from deepprompt_ros.execution.controller import ExecutionController
+    from deepprompt_ros.execution.stream_loop import StreamLoop
 
     realtime.set_switch_interval(cfg.gil_switch_interval)
     rclpy.init(args=[], signal_handler_options=SignalHandlerOptions.NO)

@@ -15,7 +15,7 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
 from deepprompt_ros.ros import conversions as conv
-from deepprompt_ros.execution.stream_loop import BrakeTail, trajectory_points
+from deepprompt_ros.execution.brake_tail import BrakeTail, trajectory_points
 
 __all__ = ["TrajectorySerializer", "LoopIO"]
 

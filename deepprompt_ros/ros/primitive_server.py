@@ -72,7 +72,8 @@ from deepprompt_ros.server.service import PrimitiveServerCore
 from deepprompt_ros.ros import conversions as conv
 from deepprompt_ros.ros.control_process import ControlProcess
 from deepprompt_ros.ros.loop_io import LoopIO, TrajectorySerializer
-from deepprompt_ros.execution.stream_loop import ExecutionController, ExecutionGoal, StreamLoop
+from deepprompt_ros.execution.controller import ExecutionController, ExecutionGoal
+from deepprompt_ros.execution.stream_loop import StreamLoop
 from deepprompt_ros.ros.fastpath import realtime
 
 __all__ = ["PrimitiveServer", "TrajectorySerializer", "main"]
