@@ -22,10 +22,10 @@ import torch  # noqa: E402
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from deepprompt_ros.data.dataset import bimodal_sine  # noqa: E402
+from deepprompt_ros.data.synthetic import bimodal_sine  # noqa: E402
 from deepprompt_ros.primitive.deep_promp import DeepProMP  # noqa: E402
 from deepprompt_ros.baselines.promp import ProMP  # noqa: E402
-from deepprompt_ros.data.reach import reach_demos  # noqa: E402
+from deepprompt_ros.sim.tasks.kinematic_reach import reach_demos  # noqa: E402
 from deepprompt_ros.training.loop import TrainConfig, train  # noqa: E402
 
 

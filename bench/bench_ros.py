@@ -71,7 +71,8 @@ SERVER = "/primitive_server"
 # ------------------------------------------------------------------------------------------------
 def tiny_reach_model(path: pathlib.Path, steps: int = 300) -> pathlib.Path:
     """A small 6-joint Gen3 lite primitive with context 'object' (3), trained in seconds."""
-    from deepprompt_ros.data.dataset import Demonstration, DemoDataset
+    from deepprompt_ros.data.demo_dataset import DemoDataset
+    from deepprompt_ros.data.demonstration import Demonstration
     from deepprompt_ros.robots.spec import load_robot
     from deepprompt_ros.training.loop import TrainConfig, train
 

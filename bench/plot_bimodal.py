@@ -16,7 +16,7 @@ import numpy as np  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from deepprompt_ros.data.dataset import bimodal_sine  # noqa: E402
+from deepprompt_ros.data.synthetic import bimodal_sine  # noqa: E402
 from deepprompt_ros.primitive.deep_promp import DeepProMP  # noqa: E402
 from deepprompt_ros.baselines.promp import ProMP  # noqa: E402
 

@@ -39,10 +39,10 @@ _EXPORTS = {
     "LinearTimeMap": "primitive.time_maps", "MonotoneTimeMap": "primitive.time_maps",
     "RhythmicTimeMap": "primitive.time_maps",
     # data
-    "Demonstration": "data.dataset", "DemoDataset": "data.dataset", "DatasetError": "data.dataset",
-    "demo_from_arrays": "data.dataset", "load_dataset": "data.dataset", "load_demo": "data.dataset",
-    "save_demo": "data.dataset", "load_csv": "data.dataset", "bimodal_sine": "data.dataset",
-    "builtin_dataset": "data.dataset",
+    "Demonstration": "data.demonstration", "DatasetError": "data.demonstration",
+    "demo_from_arrays": "data.demonstration", "DemoDataset": "data.demo_dataset",
+    "load_dataset": "data.demo_dataset", "load_demo": "data.io", "save_demo": "data.io", "load_csv": "data.io",
+    "bimodal_sine": "data.synthetic", "builtin_dataset": "data.builtin",
     # baseline
     "ProMP": "baselines.promp",
     # robots, simulation and streaming

@@ -19,7 +19,7 @@ from typing import Callable
 
 import numpy as np
 
-from deepprompt_ros.data.dataset import bimodal_sine
+from deepprompt_ros.data.synthetic import bimodal_sine
 from deepprompt_ros.primitive.deep_promp import DeepProMP
 from deepprompt_ros.baselines.promp import ProMP
 

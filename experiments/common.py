@@ -32,7 +32,8 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from deepprompt_ros.data.dataset import DemoDataset, bimodal_sine
+from deepprompt_ros.data.demo_dataset import DemoDataset
+from deepprompt_ros.data.synthetic import bimodal_sine
 from deepprompt_ros.training.loop import TrainConfig
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -109,7 +110,7 @@ SCALES = {
 
 def _reach(robot: str) -> Callable[[int, int], DemoDataset]:
     def make(n: int, seed: int) -> DemoDataset:
-        from deepprompt_ros.data.reach import reach_demos  # pinocchio: imported when used
+        from deepprompt_ros.sim.tasks.kinematic_reach import reach_demos  # pinocchio: imported when used
 
         return reach_demos(robot, n_demos=n, seed=seed)
     return make
@@ -263,7 +264,7 @@ def cached_task_split(name: str, split: str, n: int | None, quick: bool, seed: i
     :func:`data_cache_dir` (the key includes a hash of ``core/tasks.py``, so a changed generator is
     never read from a stale cache). Each cache entry keeps ``cache_info.json`` (the dataset's source
     and the generation time, s), so a read entry has the source of the generated one."""
-    from deepprompt_ros.data.dataset import load_dataset
+    from deepprompt_ros.data.demo_dataset import load_dataset
 
     tasks, digest = _tasks_module()
     folder = data_cache_dir() / f"{name}_{split}_n{n}_q{int(quick)}_s{seed}_{digest}"

@@ -31,7 +31,7 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 
 from deepprompt_ros.baselines.models import MODEL_CLASSES, ProMPModel, available_conditionings, reconstruction_mse
-from deepprompt_ros.data.dataset import DemoDataset
+from deepprompt_ros.data.demo_dataset import DemoDataset
 from deepprompt_ros.training.loop import TrainConfig
 
 from . import common

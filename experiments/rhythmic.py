@@ -22,7 +22,7 @@ from typing import Callable
 import numpy as np
 
 from deepprompt_ros.baselines.models import ProMPModel
-from deepprompt_ros.data.dataset import wam_shake
+from deepprompt_ros.data.builtin import wam_shake
 from deepprompt_ros.primitive.deep_promp import DeepProMP
 
 from . import common

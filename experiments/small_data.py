@@ -41,7 +41,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from deepprompt_ros.baselines.models import DeepProMPModel, ProMPModel, reconstruction_mse
-from deepprompt_ros.data.dataset import DemoDataset
+from deepprompt_ros.data.demo_dataset import DemoDataset
 from deepprompt_ros.training.loop import TrainConfig, cv_basis_hyperparameters, fold_assignment
 
 from . import common

@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from deepprompt_ros.baselines import models as bl
-from deepprompt_ros.data.dataset import Demonstration, DemoDataset
+from deepprompt_ros.data.demo_dataset import DemoDataset
+from deepprompt_ros.data.demonstration import Demonstration
 from deepprompt_ros.training.loop import TrainConfig, fit_normalization, to_tensors
 
 torch.set_num_threads(1)

@@ -9,7 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from deepprompt_ros.data import dataset as dsm
+from deepprompt_ros.data.demo_dataset import DemoDataset, load_dataset
+from deepprompt_ros.data.demonstration import DatasetError, demo_from_arrays
+from deepprompt_ros.data.io import load_csv, load_demo, save_demo
+from deepprompt_ros.data.synthetic import bimodal_sine
 from deepprompt_ros.model.checkpoint import CheckpointError, Normalization, load_checkpoint, save_checkpoint
 from deepprompt_ros.model.network import DeepProMPNet, ModelConfig, bayesian_aggregate, phase_features
 from deepprompt_ros.primitive.deep_promp import DeepProMP
@@ -105,24 +108,24 @@ def test_operation_errors_say_what_is_expected():
 def _demo(name="d0", n=20, **kw):
     t = np.linspace(0, 2, n)
     q = np.stack([np.sin(t), np.cos(t)], 1)
-    return dsm.demo_from_arrays(name, t, q, ["j1", "j2"], **kw)
+    return demo_from_arrays(name, t, q, ["j1", "j2"], **kw)
 
 
 def test_dataset_roundtrip_npz_and_csv(tmp_path):
     d = _demo(contexts={"obj": [0.1, 0.2, 0.3]}, images=np.zeros((2, 8, 8, 3), np.uint8))
-    dsm.save_demo(d, tmp_path / "a.npz")
-    back = dsm.load_demo(tmp_path / "a.npz")
+    save_demo(d, tmp_path / "a.npz")
+    back = load_demo(tmp_path / "a.npz")
     np.testing.assert_array_equal(back.q, d.q)
     np.testing.assert_array_equal(back.contexts["obj"], [[0.1, 0.2, 0.3]])
     assert back.images.shape == (2, 8, 8, 3) and back.joint_names == ("j1", "j2")
     csv = tmp_path / "demo_b.csv"
     csv.write_text("t,j1,j2\n0,0,1\n0.5,0.1,0.9\n1.0,0.2,0.8\n")
-    c = dsm.load_csv(csv)
+    c = load_csv(csv)
     assert c.q.shape == (3, 2) and c.name == "demo_b"
-    with pytest.raises(dsm.DatasetError, match="demo_b': context modalities"):
-        dsm.load_dataset(tmp_path)  # one demo has a context, the other not
+    with pytest.raises(DatasetError, match="demo_b': context modalities"):
+        load_dataset(tmp_path)  # one demo has a context, the other not
     (tmp_path / "a.npz").unlink()
-    ds = dsm.load_dataset(tmp_path)
+    ds = load_dataset(tmp_path)
     assert len(ds) == 1 and ds.joint_names == ("j1", "j2")
 
 
@@ -135,23 +138,23 @@ def test_bad_demonstrations_are_refused_with_demo_name(mutate, message):
     t = np.linspace(0, 1, 10)
     q = np.zeros((10, 2))
     t2, q2 = mutate(t, q)
-    with pytest.raises(dsm.DatasetError, match=f"demonstration 'bad_one'.*{message}"):
-        dsm.demo_from_arrays("bad_one", t2, q2, ["j1", "j2"])
+    with pytest.raises(DatasetError, match=f"demonstration 'bad_one'.*{message}"):
+        demo_from_arrays("bad_one", t2, q2, ["j1", "j2"])
 
 
 def test_dataset_refuses_mismatched_joint_names(tmp_path):
     a = _demo("a")
-    b = dsm.demo_from_arrays("b", a.t, a.q, ["j1", "elbow"])
-    with pytest.raises(dsm.DatasetError, match="demonstration 'b': joint names"):
-        dsm.DemoDataset((a, b))
-    dsm.save_demo(a, tmp_path / "a.npz")
+    b = demo_from_arrays("b", a.t, a.q, ["j1", "elbow"])
+    with pytest.raises(DatasetError, match="demonstration 'b': joint names"):
+        DemoDataset((a, b))
+    save_demo(a, tmp_path / "a.npz")
     np.savez(tmp_path / "broken.npz", t=np.arange(3.0))
-    with pytest.raises(dsm.DatasetError, match="broken.npz.*missing arrays"):
-        dsm.load_dataset(tmp_path)
+    with pytest.raises(DatasetError, match="broken.npz.*missing arrays"):
+        load_dataset(tmp_path)
 
 
 def test_bimodal_sine_has_two_modes_crossing_zero():
-    ds = dsm.bimodal_sine(40, seed=3)
+    ds = bimodal_sine(40, seed=3)
     y = np.stack([d.resampled(101)[:, 0] for d in ds.demos])
     assert np.all(np.abs(y[:, [0, 50, 100]]) < 0.05)
     quarter = y[:, 25]

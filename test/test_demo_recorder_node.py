@@ -19,7 +19,8 @@ from std_srvs.srv import SetBool, Trigger
 from deepprompt_ros.common.params import specs_of
 from deepprompt_ros.recording import recorder as rec
 from deepprompt_ros.recording.config import RecorderConfig
-from deepprompt_ros.data.dataset import load_dataset, load_demo
+from deepprompt_ros.data.demo_dataset import load_dataset
+from deepprompt_ros.data.io import load_demo
 from deepprompt_ros.robots.kinematics import RobotKinematics
 from deepprompt_ros.robots.spec import load_robot
 from deepprompt_ros.ros import conversions as conv

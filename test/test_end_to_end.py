@@ -19,7 +19,7 @@ from rclpy.action import ActionClient
 from sensor_msgs.msg import JointState
 from std_srvs.srv import SetBool, Trigger
 
-from deepprompt_ros.data.dataset import load_dataset
+from deepprompt_ros.data.demo_dataset import load_dataset
 from deepprompt_ros.robots.kinematics import RobotKinematics
 from deepprompt_ros.robots.spec import load_robot
 from deepprompt_ros.training.loop import TrainConfig, train

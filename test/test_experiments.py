@@ -19,7 +19,8 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from deepprompt_ros.baselines.models import MODEL_CLASSES  # noqa: E402
-from deepprompt_ros.data.dataset import Demonstration, DemoDataset  # noqa: E402
+from deepprompt_ros.data.demo_dataset import DemoDataset  # noqa: E402
+from deepprompt_ros.data.demonstration import Demonstration  # noqa: E402
 from experiments import common, reconstruction  # noqa: E402
 from experiments.run import EXPERIMENTS, UNIT_EXPERIMENTS  # noqa: E402
 from experiments.units import Unit, UnitCache  # noqa: E402

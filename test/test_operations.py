@@ -4,7 +4,8 @@ import pathlib
 import numpy as np
 import pytest
 
-from deepprompt_ros.data.dataset import bimodal_sine, wam_shake
+from deepprompt_ros.data.builtin import wam_shake
+from deepprompt_ros.data.synthetic import bimodal_sine
 from deepprompt_ros.primitive.deep_promp import DeepProMP, LatentGaussian
 from deepprompt_ros.baselines.promp import ProMP
 from deepprompt_ros.primitive.time_maps import LinearTimeMap, MonotoneTimeMap, RhythmicTimeMap, evaluate
@@ -168,7 +169,7 @@ def test_refinement_keeps_sample_cloud_on_via_points(reach):
 
 # ------------------------------------------------------------------ context conditioning
 def test_context_conditioning_reaches_towards_the_object(reach):
-    from deepprompt_ros.data.reach import reach_demos
+    from deepprompt_ros.sim.tasks.kinematic_reach import reach_demos
     from deepprompt_ros.robots.kinematics import RobotKinematics
     from deepprompt_ros.robots.spec import load_robot
 

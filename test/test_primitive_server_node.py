@@ -23,7 +23,8 @@ from trajectory_msgs.msg import JointTrajectory
 
 from deepprompt_ros.server.config import ServerConfig, robot_limits
 from deepprompt_ros.model.checkpoint import Normalization, save_checkpoint
-from deepprompt_ros.data.dataset import Demonstration, DemoDataset
+from deepprompt_ros.data.demo_dataset import DemoDataset
+from deepprompt_ros.data.demonstration import Demonstration
 from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
 from deepprompt_ros.robots.spec import load_robot
 from deepprompt_ros.execution.limits import check_limits

@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from deepprompt_ros.model.checkpoint import Normalization, load_checkpoint, save_checkpoint
-from deepprompt_ros.data.dataset import Demonstration, DemoDataset
+from deepprompt_ros.data.demo_dataset import DemoDataset
+from deepprompt_ros.data.demonstration import Demonstration
 from deepprompt_ros.model.network import DeepProMPNet, ModelConfig, phase_basis
 from deepprompt_ros.primitive.deep_promp import DeepProMP, LatentGaussian
 from deepprompt_ros.baselines.promp import ProMP

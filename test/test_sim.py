@@ -7,7 +7,8 @@ import pytest
 
 from deepprompt_ros.robots.kinematics import RobotKinematics
 from deepprompt_ros.robots.spec import load_robot
-from deepprompt_ros.sim.simulation import CameraPose, Simulation
+from deepprompt_ros.sim.camera import CameraPose
+from deepprompt_ros.sim.simulation import Simulation
 
 
 @pytest.fixture

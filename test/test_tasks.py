@@ -1,4 +1,4 @@
-"""PyBullet task datasets (deepprompt_ros.sim.tasks.registry): real PyBullet and Pinocchio, no mocks.
+"""PyBullet task datasets (deepprompt_ros.sim.tasks): real PyBullet and Pinocchio, no mocks.
 
 Small seeded datasets are generated once per module (the quick configuration records the plan;
 one small set is executed in the simulation) and checked against the scene they claim to show.
@@ -9,19 +9,15 @@ import math
 import numpy as np
 import pytest
 
-from deepprompt_ros.data.dataset import builtin_dataset, load_dataset
+from deepprompt_ros.data.builtin import builtin_dataset
+from deepprompt_ros.data.demo_dataset import load_dataset
 from deepprompt_ros.robots.kinematics import RobotKinematics
 from deepprompt_ros.robots.spec import load_robot
-from deepprompt_ros.sim.tasks.registry import (
-    SPLITS,
-    TASKS,
-    ViaTrajectory,
-    _kinova_cameras,
-    _wam_cameras,
-    main,
-    make_task,
-    project_point,
-)
+from deepprompt_ros.sim.camera import project_point
+from deepprompt_ros.sim.tasks.cli import main
+from deepprompt_ros.sim.tasks.registry import SPLITS, TASKS, make_task
+from deepprompt_ros.sim.tasks.scene import kinova_cameras, wam_cameras
+from deepprompt_ros.sim.tasks.trajectory import ViaTrajectory
 
 N = {"reach": 12, "close_box": 6, "pour": 10, "kinova_pick_place": 8}
 
@@ -152,7 +148,7 @@ def test_reach_is_bimodal_left_or_right_of_the_straight_line(data, kin):
 
 
 def test_reach_images_show_the_target_where_the_context_says(data):
-    cams = _wam_cameras()
+    cams = wam_cameras()
     checked = 0
     for d in data["reach_96"].demos:
         target = d.contexts["target"][0]
@@ -175,7 +171,7 @@ def test_images_differ_when_the_context_differs(data):
 
 
 def test_close_box_motion_matches_box_pose_and_lid_angle(data, kin):
-    from deepprompt_ros.sim.tasks.registry import _BOX_H, _BOX_L, _BOX_W, _LID_T
+    from deepprompt_ros.sim.tasks.close_box import BOX_H, BOX_L, BOX_W, LID_T
 
     k = kin["wam"]
     for d in data["close_box"].demos:
@@ -185,34 +181,34 @@ def test_close_box_motion_matches_box_pose_and_lid_angle(data, kin):
         c, s = math.cos(yaw), math.sin(yaw)
         local = np.stack([c * (p[:, 0] - x) + s * (p[:, 1] - y), -s * (p[:, 0] - x) + c * (p[:, 1] - y), p[:, 2]], 1)
         # the tool pushes the closed lid: above the box's footprint, just above the lid
-        on_top = ((np.abs(local[:, 0]) < _BOX_L / 2) & (np.abs(local[:, 1]) < _BOX_W / 2)
-                  & (local[:, 2] > _BOX_H + _LID_T) & (local[:, 2] < _BOX_H + _LID_T + 0.05))
+        on_top = ((np.abs(local[:, 0]) < BOX_L / 2) & (np.abs(local[:, 1]) < BOX_W / 2)
+                  & (local[:, 2] > BOX_H + LID_T) & (local[:, 2] < BOX_H + LID_T + 0.05))
         assert on_top.any()
         # it reaches the open lid's outer face (2.5-4 cm off it, 65-95 % of its length) from outside
-        h = np.array([-_BOX_L / 2, _BOX_H])
+        h = np.array([-BOX_L / 2, BOX_H])
         rel = local[:, [0, 2]] - h
         along = rel @ np.array([math.cos(theta), math.sin(theta)])
         normal = rel @ np.array([-math.sin(theta), math.cos(theta)])
-        off_region = (np.clip(0.6 * _BOX_L - along, 0, None) + np.clip(along - _BOX_L, 0, None)
+        off_region = (np.clip(0.6 * BOX_L - along, 0, None) + np.clip(along - BOX_L, 0, None)
                       + np.clip(0.02 - normal, 0, None) + np.clip(normal - 0.045, 0, None))
         i = int(np.argmin(off_region))
         assert off_region[i] < 0.015, off_region[i]
-        inside = (along[:i] > 0) & (along[:i] < _BOX_L) & (np.abs(local[:i, 1]) < _BOX_W / 2)
+        inside = (along[:i] > 0) & (along[:i] < BOX_L) & (np.abs(local[:i, 1]) < BOX_W / 2)
         assert np.all(normal[:i][inside] > 0.01)  # never through the open lid before touching it
         # the lid angle: the tool sweeps an arc about the hinge (constant radius) from the open lid
         # down to the closed one; the swept angle equals θ (measured 6-12° more: the approach
         # crosses the arc's radius a little outside the lid)
         rad, pol = np.hypot(rel[:, 0], rel[:, 1]), np.arctan2(rel[:, 1], rel[:, 0])
-        i_end = int(np.argmin(np.where(np.abs(local[:, 0]) < _BOX_L / 2, local[:, 2], np.inf)))
+        i_end = int(np.argmin(np.where(np.abs(local[:, 0]) < BOX_L / 2, local[:, 2], np.inf)))
         on_arc = np.abs(rad - rad[i_end]) < 0.01
         swept = pol[on_arc].max() - pol[i_end]
         assert 0.0 < swept - theta < math.radians(15), (math.degrees(swept), math.degrees(theta))
         # starts and ends out of the box
-        assert local[0, 2] > _BOX_H + 0.1 and local[-1, 2] > _BOX_H + 0.05
+        assert local[0, 2] > BOX_H + 0.1 and local[-1, 2] > BOX_H + 0.05
 
 
 def test_pour_grasps_the_cup_and_tilts_over_the_pot_to_either_side(data, kin):
-    from deepprompt_ros.sim.tasks.registry import _CUP_H, _CUP_R
+    from deepprompt_ros.sim.tasks.pour import CUP_H, CUP_R
 
     k = kin["wam"]
     signs = []
@@ -220,10 +216,10 @@ def test_pour_grasps_the_cup_and_tilts_over_the_pot_to_either_side(data, kin):
         cx, cy, px, py, ph = d.contexts["pour"][0]
         p = _ee_path(k, d.q)
         axes = np.array([k.forward_kinematics(q).rotation[:, 2] for q in d.q])
-        cup_axis_at = p + (_CUP_R + 0.005) * axes  # where a cup held on the tool axis would be
+        cup_axis_at = p + (CUP_R + 0.005) * axes  # where a cup held on the tool axis would be
         grasp = np.linalg.norm(cup_axis_at[:, :2] - [cx, cy], axis=1)
         i = int(np.argmin(grasp))
-        assert grasp[i] < 0.01 and 0.0 < cup_axis_at[i, 2] < _CUP_H
+        assert grasp[i] < 0.01 and 0.0 < cup_axis_at[i, 2] < CUP_H
         roll = d.q[:, 6] - d.q[i, 6]
         j = int(np.argmax(np.abs(roll)))
         assert abs(roll[j]) > 1.3 and j > i
@@ -235,7 +231,7 @@ def test_pour_grasps_the_cup_and_tilts_over_the_pot_to_either_side(data, kin):
 
 def test_kinova_pixel_context_matches_image_and_motion(data, kin):
     k = kin["gen3_lite"]
-    cam = _kinova_cameras()[0]
+    cam = kinova_cameras()[0]
     subtasks = []
     for d in data["kinova_pick_place"].demos:
         uv = d.contexts["object_px"][0]

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from deepprompt_ros.model.checkpoint import load_checkpoint
-from deepprompt_ros.data.dataset import bimodal_sine
+from deepprompt_ros.data.synthetic import bimodal_sine
 from deepprompt_ros.training.loop import TrainConfig, train
 
 

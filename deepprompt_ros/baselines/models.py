@@ -67,7 +67,7 @@ from torch.nn import functional as F
 from deepprompt_ros import __version__
 from deepprompt_ros.model.checkpoint import FORMAT as DEEPPROMP_FORMAT
 from deepprompt_ros.model.checkpoint import Normalization, load_checkpoint, save_checkpoint
-from deepprompt_ros.data.dataset import DemoDataset
+from deepprompt_ros.data.demo_dataset import DemoDataset
 from deepprompt_ros.model.network import ImageEncoder, _mlp_trunk, config_from_json, config_to_json, gaussian_kl, phase_features
 from deepprompt_ros.primitive.deep_promp import DeepProMP, LatentGaussian, check_images, check_phases, joint_list_text
 from deepprompt_ros.baselines.promp import ProMP

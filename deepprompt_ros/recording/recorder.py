@@ -38,7 +38,7 @@ from typing import NamedTuple, Sequence
 import numpy as np
 import yaml
 
-from deepprompt_ros.data.dataset import Demonstration, demo_from_arrays
+from deepprompt_ros.data.demonstration import Demonstration, demo_from_arrays
 
 __all__ = [
     "RecordingError",

@@ -18,7 +18,7 @@ context topic the latest message at the start (or the first one after it) as the
 sensor_msgs/Image topic (rgb8 / bgr8) ``max_images`` images spread over the recording, resized to
 ``image_height`` x ``image_width``. Context topics of other types go to the bag only.
 
-On stop: ``<output_directory>/<name>.npz`` (:func:`~deepprompt_ros.data.dataset.save_demo`,
+On stop: ``<output_directory>/<name>.npz`` (:func:`~deepprompt_ros.data.io.save_demo`,
 atomic) and the bag folder ``<bag_directory>/<name>/`` (``metadata.yaml`` + ``<name>_0.mcap``,
 renamed into place when complete; see :mod:`deepprompt_ros.recording.recorder`). A recorder killed
 mid-recording leaves the finished demonstrations intact and only a hidden ``.part`` folder.
@@ -45,7 +45,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 
-from deepprompt_ros.data.dataset import save_demo
+from deepprompt_ros.data.io import save_demo
 from deepprompt_ros.recording.recorder import (
     BagWriter,
     DemoBuffer,

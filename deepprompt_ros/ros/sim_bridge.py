@@ -77,7 +77,8 @@ from deepprompt_ros.common.params import ConfigError
 from deepprompt_ros.ros import conversions as conv
 from deepprompt_ros.ros.parameters import declare_config
 from deepprompt_ros.sim.bridge_config import ObjectConfig, SimBridgeConfig
-from deepprompt_ros.sim.simulation import CameraPose, Simulation
+from deepprompt_ros.sim.camera import CameraPose
+from deepprompt_ros.sim.simulation import Simulation
 
 __all__ = ["SimBridge", "main"]
 

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import dataclasses
 import math
 import os
 import time
@@ -29,10 +28,12 @@ from typing import NamedTuple, Sequence
 import numpy as np
 import pybullet as pb
 
+from deepprompt_ros.robots.geometry import rotation_from_quat_xyzw
 from deepprompt_ros.robots.kinematics import FramePose, RobotKinematics
 from deepprompt_ros.robots.spec import GRAVITY, RobotSpec, links_without_inertial, load_robot
+from deepprompt_ros.sim.camera import CameraPose, projection_matrix, view_matrix
 
-__all__ = ["CameraPose", "JointState", "ObjectPose", "Simulation", "SHAPES"]
+__all__ = ["JointState", "ObjectPose", "Simulation", "SHAPES"]
 
 #: Relative margin kept between velocity commands and the velocity limits.
 _VELOCITY_MARGIN = 2e-3
@@ -44,43 +45,6 @@ SHAPES = {
     "cylinder": "size = (radius, length), axis along the object's z",
     "capsule": "size = (radius, length of the cylindrical part), axis along z",
 }
-
-
-@dataclasses.dataclass(frozen=True)
-class CameraPose:
-    """Pinhole camera looking from ``eye`` at ``target``.
-
-    Attributes
-    ----------
-    eye, target : tuple of 3 floats
-        Camera position and the point it looks at (world frame, m).
-    up : tuple of 3 floats
-        Direction that appears upwards in the image.
-    fov_deg : float
-        Vertical field of view (degrees).
-    near, far : float
-        Clipping distances (m).
-    """
-
-    eye: tuple[float, float, float] = (0.75, 0.35, 0.55)
-    target: tuple[float, float, float] = (0.15, 0.0, 0.25)
-    up: tuple[float, float, float] = (0.0, 0.0, 1.0)
-    fov_deg: float = 60.0
-    near: float = 0.01
-    far: float = 5.0
-
-    def __post_init__(self) -> None:
-        for name in ("eye", "target", "up"):
-            v = tuple(float(x) for x in getattr(self, name))
-            if len(v) != 3 or not all(math.isfinite(x) for x in v):
-                raise ValueError(f"camera {name} must be 3 finite numbers; got {getattr(self, name)!r}")
-            object.__setattr__(self, name, v)
-        if np.allclose(self.eye, self.target):
-            raise ValueError("camera eye and target must differ")
-        if not 0.0 < self.fov_deg < 180.0:
-            raise ValueError(f"camera fov_deg must be in (0, 180); got {self.fov_deg}")
-        if not 0.0 < self.near < self.far:
-            raise ValueError(f"camera clipping needs 0 < near < far; got near={self.near}, far={self.far}")
 
 
 class JointState(NamedTuple):
@@ -592,7 +556,7 @@ class Simulation:
         """World pose of a link frame as PyBullet simulates it ('ee' = the end-effector frame)."""
         self._check_open()
         pos, orn, _ = self._link_state(self._link(link))
-        R = np.array(pb.getMatrixFromQuaternion(orn)).reshape(3, 3)
+        R = rotation_from_quat_xyzw(orn)
         return FramePose(pos, R)
 
     def ee_position(self) -> np.ndarray:
@@ -621,7 +585,7 @@ class Simulation:
         else:
             p = _vec(position, 3, "position")
             pos, orn, _ = self._link_state(li)
-            R = np.array(pb.getMatrixFromQuaternion(orn)).reshape(3, 3)
+            R = rotation_from_quat_xyzw(orn)
             offset = R.T @ (p - pos)
         self._forces[li] = (f, offset)
 
@@ -663,7 +627,7 @@ class Simulation:
         c = self._client
         for li, (f, offset) in self._forces.items():
             pos, orn, _ = self._link_state(li)
-            R = np.array(pb.getMatrixFromQuaternion(orn)).reshape(3, 3)
+            R = rotation_from_quat_xyzw(orn)
             pb.applyExternalForce(self._robot, li, f.tolist(), (pos + R @ offset).tolist(),
                                   pb.WORLD_FRAME, physicsClientId=c)
         if self._spring is not None:
@@ -801,9 +765,7 @@ class Simulation:
         if not (1 <= width <= 4096 and 1 <= height <= 4096):
             raise ValueError(f"image size must be 1..4096 pixels per side; got {width}x{height}")
         cam = self.camera if camera is None else camera
-        view = pb.computeViewMatrix(cam.eye, cam.target, cam.up, physicsClientId=self._client)
-        proj = pb.computeProjectionMatrixFOV(cam.fov_deg, width / height, cam.near, cam.far,
-                                             physicsClientId=self._client)
+        view, proj = view_matrix(cam), projection_matrix(cam, width, height)
         _, _, rgba, _, _ = pb.getCameraImage(width, height, view, proj,
                                              renderer=pb.ER_TINY_RENDERER,
                                              physicsClientId=self._client)

@@ -37,7 +37,9 @@ import torch
 
 from deepprompt_ros import __version__
 from deepprompt_ros.model.checkpoint import Normalization, save_checkpoint
-from deepprompt_ros.data.dataset import DatasetError, DemoDataset, builtin_dataset, load_dataset
+from deepprompt_ros.data.builtin import builtin_dataset
+from deepprompt_ros.data.demo_dataset import DemoDataset, load_dataset
+from deepprompt_ros.data.demonstration import DatasetError
 from deepprompt_ros.model.network import DeepProMPNet, ModelConfig, bayesian_aggregate, gaussian_kl, phase_basis
 
 OBJECTIVES = ("paper", "np")
@@ -628,7 +630,7 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="train", description="Train a DeepProMP on demonstrations.")
     src = ap.add_mutually_exclusive_group(required=True)
-    src.add_argument("--data", help="dataset folder of .npz/.csv demonstrations (see deepprompt_ros.data.dataset)")
+    src.add_argument("--data", help="dataset folder of .npz/.csv demonstrations (see deepprompt_ros.data.demonstration)")
     src.add_argument("--builtin", help="built-in generated dataset: bimodal_sine | rhythmic_shake | wam_shake | "
                      "gen3_lite_reach, or a PyBullet task (core.tasks; full sets take minutes to generate): "
                      "reach | close_box | pour | kinova_pick_place")

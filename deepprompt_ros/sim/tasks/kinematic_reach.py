@@ -1,29 +1,36 @@
-"""Scripted reaching demonstrations for a robot arm (the primitive shipped for ``make run``).
+"""Kinematic reaching demonstrations for a robot arm (the primitive shipped for ``make run``).
 
 A demonstrator moves the arm from its home configuration to a point ``approach_height`` above an
 object, passing through a lifted intermediate configuration whose height varies per demo, and
-turns the wrist (last joint) towards the object's bearing. Joint
-targets come from damped-least-squares inverse kinematics on the pinocchio model; the timing is a
-minimum-jerk profile. Each demonstration carries the object's position as its context ``object``.
+turns the wrist (last joint) towards the object's bearing. Joint targets come from
+damped-least-squares inverse kinematics on the Pinocchio model
+(:func:`~deepprompt_ros.robots.ik.solve_ik`, position only); the timing is the minimum-jerk profile
+(:func:`~deepprompt_ros.sim.tasks.min_jerk.min_jerk`). Each demonstration carries the object's
+position as its context ``object``. No simulator runs: the demonstrations are the plan itself.
+
+It lives with the task demonstrators rather than in :mod:`deepprompt_ros.data` because it is one of
+them: a scripted demonstrator built on a robot model, the IK and the minimum-jerk profile that the
+PyBullet tasks share, and ``data`` sits below ``robots`` in the import order (the registry of
+built-in datasets, :mod:`deepprompt_ros.data.builtin`, sits above both).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from deepprompt_ros.data.dataset import Demonstration, DemoDataset
+from deepprompt_ros.data.demo_dataset import DemoDataset
+from deepprompt_ros.data.demonstration import Demonstration
 from deepprompt_ros.robots.ik import solve_ik
 from deepprompt_ros.robots.kinematics import RobotKinematics
 from deepprompt_ros.robots.spec import load_robot
+from deepprompt_ros.sim.tasks.min_jerk import min_jerk
+
+__all__ = ["reach_demos"]
 
 
 # Position-only damped least squares: 1 mrad from the limits, 200 steps, λ = 0.01, 10 µm tolerance,
 # no null-space term, no step cap, the seed as given, the error as measured before the last step.
 _POSITION_IK = dict(margin=1e-3, iterations=200, damping=1e-2, tol_position=1e-5, rest_gain=0.0,
                     max_step=None, clip_seed=False, measure_after_last_step=False)
-
-
-def _min_jerk(s):
-    return 10 * s**3 - 15 * s**4 + 6 * s**5
 
 
 def reach_demos(robot: str = "gen3_lite", n_demos: int = 120, n_points: int = 100, duration: float = 6.0,
@@ -54,8 +61,8 @@ def reach_demos(robot: str = "gen3_lite", n_demos: int = 120, n_points: int = 10
         goal[-1] = np.clip(spec.home[-1] + np.arctan2(obj[1], obj[0]), spec.lower[-1], spec.upper[-1])
         mid[-1] = 0.5 * (spec.home[-1] + goal[-1])
         # piecewise min-jerk through home → mid → goal, blended into one smooth path
-        a = _min_jerk(np.clip(s / 0.5, 0, 1))[:, None]
-        b = _min_jerk(np.clip((s - 0.5) / 0.5, 0, 1))[:, None]
+        a = min_jerk(np.clip(s / 0.5, 0, 1))[:, None]
+        b = min_jerk(np.clip((s - 0.5) / 0.5, 0, 1))[:, None]
         path = spec.home + a * (mid - spec.home) + b * (goal - mid)
         path = np.clip(path, spec.lower, spec.upper)
         demos.append(Demonstration(name=f"{robot}_reach_{len(demos):04d}", t=s * duration, q=path,
