@@ -158,7 +158,7 @@ def test_primitives_file_keeps_valid_entries_and_explains_each_refusal(tmp_path)
 def test_shipped_primitives_file_parses():
     entries, errors = read_primitives_file(REPO / "config" / "primitives.yaml")
     assert not errors
-    assert {e.name for e in entries} >= {"reach", "bimodal_sine"}
+    assert {e.name for e in entries} >= {"reach"}
 
 
 def test_models_with_other_joints_or_missing_files_are_refused_the_rest_load(models):
