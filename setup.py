@@ -21,6 +21,8 @@ setup(
         ("share/" + PACKAGE, ["package.xml"]),
         ("share/" + PACKAGE + "/config", _files("config/*.yaml")),
         ("share/" + PACKAGE + "/models", _files("models/*")),
+        ("share/" + PACKAGE + "/launch", _files("launch/*.launch.py")),
+        ("share/" + PACKAGE + "/urdf", _files(PACKAGE + "/resources/urdf/*.urdf")),
     ],
     install_requires=["setuptools"],
     zip_safe=True,

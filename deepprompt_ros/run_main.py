@@ -1,7 +1,10 @@
 """`make run`: the simulated Gen3 lite (sim_bridge) and primitive_server with the shipped primitives,
-ready for service calls (see README, "Task-planner example"). Ctrl-C stops both.
+ready for service calls (see README). Ctrl-C stops both.
 
-Both nodes run as separate processes (their own DDS participants) with LOCALHOST discovery.
+The nodes and their parameters are those of ``ros2 launch deepprompt_ros demo.launch.py``: both
+come from :mod:`deepprompt_ros.bringup` (launch ``demo``), and the options below are its launch
+arguments. Each node runs as its own process (its own DDS participant), with LOCALHOST discovery
+unless ``ROS_AUTOMATIC_DISCOVERY_RANGE`` says otherwise.
 """
 from __future__ import annotations
 
@@ -12,29 +15,32 @@ import subprocess
 import sys
 import time
 
-from deepprompt_ros.paths import config_dir
+from deepprompt_ros import bringup
+from deepprompt_ros.common.params import ConfigError
+
+LAUNCH = "demo"
+
+
+def parser() -> argparse.ArgumentParser:
+    """Options ``--<argument>`` (``_`` written ``-``) for every argument of the demo launch."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    for spec in bringup.arguments(LAUNCH):
+        unit = f" ({spec.unit})" if spec.unit else ""
+        ap.add_argument("--" + spec.name.replace("_", "-"), dest=spec.name, default=bringup.argument_text(spec),
+                        help=spec.description + unit)
+    return ap
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--robot", default="gen3_lite", help="robot of the sim bridge (gen3_lite | wam | example-robot-data name)")
-    ap.add_argument("--real-time-factor", type=float, default=1.0)
-    ap.add_argument("--stale-timeout", type=float, default=1.0,
-                    help="primitive_server stale_timeout (s) for the simulated robot (the server default 0.2 s suits a real arm)")
+    ap = parser()
     args = ap.parse_args(argv)
+    try:
+        nodes = bringup.nodes(LAUNCH, vars(args))
+    except (ConfigError, FileNotFoundError) as exc:
+        ap.error(str(exc))
     env = dict(os.environ)
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    env.setdefault("OPENBLAS_NUM_THREADS", "1")  # small matrices: no BLAS threads competing with the 1 kHz loop
-    cfg = config_dir()
-    nodes = {
-        "sim_bridge": [sys.executable, "-m", "deepprompt_ros.ros.sim_bridge", "--ros-args",
-                       "--params-file", str(cfg / "sim_bridge.yaml"),
-                       "-p", f"robot:={args.robot}", "-p", f"real_time_factor:={args.real_time_factor}"],
-        "primitive_server": [sys.executable, "-m", "deepprompt_ros.ros.primitive_server", "--ros-args",
-                             "--params-file", str(cfg / "primitive_server.yaml"), "-p", f"robot:={args.robot}",
-                             # the Python simulation can pause for a few hundred ms on a busy machine
-                             "-p", f"stale_timeout:={args.stale_timeout}"],
-    }
     procs = {}
 
     def _terminate(signum, _frame):  # SIGTERM (e.g. from `timeout` or a supervisor): stop the nodes too
@@ -42,9 +48,10 @@ def main(argv=None) -> int:
 
     signal.signal(signal.SIGTERM, _terminate)
     try:
-        for name, cmd in nodes.items():
-            procs[name] = subprocess.Popen(cmd, env=env, start_new_session=True)
-            print(f"[run] started {name} (pid {procs[name].pid})", flush=True)
+        for node in nodes:
+            node_env = {**env, **dict(node.environment)}
+            procs[node.name] = subprocess.Popen(node.command(sys.executable), env=node_env, start_new_session=True)
+            print(f"[run] started {node.name} (pid {procs[node.name].pid})", flush=True)
         print("[run] ready for service calls, e.g. `.venv/bin/python examples/planner_client.py`; Ctrl-C to stop",
               flush=True)
         while True:

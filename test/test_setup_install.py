@@ -225,3 +225,48 @@ def test_ros_layout_install_sync_and_cleanup(tmp_path):
     cfg = prefix / "share" / "deepprompt_ros" / "config"
     assert sorted(os.listdir(cfg)) == ["a.yaml"] and (cfg / "a.yaml").read_text() == "a: 3\n"
     assert not (cfg / "a.yaml").is_symlink()
+
+
+def _setup_kwargs():
+    """The keyword arguments setup.py passes to setuptools.setup (run in the checkout, nothing installed)."""
+    import runpy
+    import setuptools
+
+    captured = {}
+    cwd = os.getcwd()
+    real_setup = setuptools.setup
+    setuptools.setup = lambda **kw: captured.update(kw)
+    try:
+        os.chdir(REPO)
+        runpy.run_path(os.path.join(REPO, "setup.py"), run_name="__main__")
+    finally:
+        setuptools.setup = real_setup
+        os.chdir(cwd)
+    return captured
+
+
+def test_setup_py_data_files_are_what_the_ros_layout_installs():
+    """setup.py's data_files (a colcon build) and tools/install_ros_layout.py (the venv) put the same
+    files into share/deepprompt_ros: package.xml, config, models, launch files and URDFs."""
+    data_files = {}
+    for dest, files in _setup_kwargs()["data_files"]:
+        if dest.startswith("share/ament_index"):
+            continue
+        for f in files:
+            data_files[os.path.join(dest, os.path.basename(f))] = os.path.join(REPO, f)
+    assert data_files == install_ros_layout.share_files(REPO)
+    names = {os.path.relpath(p, "share/deepprompt_ros") for p in data_files}
+    assert {"launch/demo.launch.py", "launch/primitive_server.launch.py", "launch/record.launch.py",
+            "urdf/gen3_lite.urdf", "urdf/wam.urdf", "config/primitives.yaml", "package.xml"} <= names
+
+
+def test_share_holds_the_launch_files_and_urdfs(ament_env):
+    """What ros2 launch and a robot_description consumer look up: share/deepprompt_ros/{launch,urdf}."""
+    from ament_index_python.packages import get_package_share_directory
+
+    share = get_package_share_directory("deepprompt_ros")
+    for rel in ("launch/demo.launch.py", "launch/primitive_server.launch.py", "launch/record.launch.py",
+                "urdf/gen3_lite.urdf", "urdf/wam.urdf"):
+        assert os.path.isfile(os.path.join(share, rel)), f"{rel} missing in {share}: run make setup"
+    with open(os.path.join(share, "urdf", "gen3_lite.urdf"), encoding="utf-8") as f:
+        assert '<robot name="' in f.read()

@@ -1,0 +1,261 @@
+"""The nodes each launch file starts, described once: what ``ros2 launch deepprompt_ros <file>``
+and ``make run`` start.
+
+A launch (one of :data:`LAUNCHES`: ``demo``, ``primitive_server``, ``record``) has arguments, a
+frozen dataclass made with :func:`~deepprompt_ros.common.params.param` (name, default,
+description, range), and a function from their values to the nodes to start
+(:class:`NodeDescription`: executable, node name, parameter files, parameters, remappings,
+arguments). The launch files in ``launch/`` declare the arguments and turn each description into a
+``launch_ros.actions.Node`` (:meth:`NodeDescription.launch_kwargs`); ``make run``
+(:mod:`deepprompt_ros.run_main`) turns the demo's into command lines
+(:meth:`NodeDescription.command`). Argument values arrive as strings (as a launch file gets them)
+and are checked here. No rclpy or launch import.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+from typing import Any, Callable, Mapping, NamedTuple
+
+from deepprompt_ros.common.params import ConfigError, ParamSpec, from_mapping, param, specs_of
+from deepprompt_ros.paths import PACKAGE, find_data_file
+
+__all__ = ["NodeDescription", "Launch", "LAUNCHES", "DemoArguments", "PrimitiveServerArguments",
+           "RecordArguments", "EXECUTABLES", "arguments", "argument_text", "launch_argument_kwargs",
+           "parse_arguments", "nodes"]
+
+#: Executable (console script of setup.py) -> the module whose ``main()`` it runs.
+EXECUTABLES = {
+    "sim_bridge": "deepprompt_ros.ros.sim_bridge",
+    "primitive_server": "deepprompt_ros.ros.primitive_server",
+    "demo_recorder": "deepprompt_ros.ros.demo_recorder",
+}
+
+#: Environment of every node: one OpenBLAS thread (small matrices; no BLAS threads competing with
+#: the 1 kHz loops).
+NODE_ENVIRONMENT = (("OPENBLAS_NUM_THREADS", "1"),)
+
+
+def _ros_value(value) -> str:
+    """``value`` as the YAML of a ``-p name:=value`` argument."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, tuple):
+        value = list(value)
+    return json.dumps(value)  # JSON is YAML: quoted strings, lists, numbers
+
+
+@dataclasses.dataclass(frozen=True)
+class NodeDescription:
+    """One node to start.
+
+    Attributes
+    ----------
+    executable : str
+        Console script of the package (a key of :data:`EXECUTABLES`).
+    name : str
+        Node name (the executable's own node name unless remapped).
+    parameter_files : tuple of str
+        Parameter YAML files, applied in order.
+    parameters : dict
+        Parameters set after the files (they win), name -> value.
+    remappings : tuple of (str, str)
+        Topic / service remappings (from, to).
+    arguments : tuple of str
+        Command-line arguments before ``--ros-args``.
+    environment : tuple of (str, str)
+        Environment variables set for the node.
+    """
+
+    executable: str
+    name: str
+    parameter_files: tuple[str, ...] = ()
+    parameters: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    remappings: tuple[tuple[str, str], ...] = ()
+    arguments: tuple[str, ...] = ()
+    environment: tuple[tuple[str, str], ...] = NODE_ENVIRONMENT
+    package: str = PACKAGE
+
+    @property
+    def module(self) -> str:
+        """The Python module run by the executable."""
+        return EXECUTABLES[self.executable]
+
+    def launch_kwargs(self) -> dict[str, Any]:
+        """Keyword arguments of ``launch_ros.actions.Node`` for this node."""
+        return dict(package=self.package, executable=self.executable, name=self.name,
+                    parameters=[*self.parameter_files] + ([dict(self.parameters)] if self.parameters else []),
+                    remappings=list(self.remappings), arguments=list(self.arguments),
+                    additional_env=dict(self.environment), output="screen")
+
+    def ros_arguments(self) -> list[str]:
+        """``--ros-args ...`` of the same node as :meth:`launch_kwargs` gives ``launch_ros``."""
+        out = ["--ros-args"]
+        if self.name != self.executable:  # the executables' own node names are theirs
+            out += ["-r", f"__node:={self.name}"]
+        for f in self.parameter_files:
+            out += ["--params-file", f]
+        for k, v in self.parameters.items():
+            out += ["-p", f"{k}:={_ros_value(v)}"]
+        for a, b in self.remappings:
+            out += ["-r", f"{a}:={b}"]
+        return out
+
+    def command(self, python: str) -> list[str]:
+        """Command line that starts the node with the interpreter ``python``."""
+        return [python, "-m", self.module, *self.arguments, *self.ros_arguments()]
+
+
+def _config(name: str) -> str:
+    """Path of the package's ``config/<name>`` (installed share folder first, then the source tree)."""
+    return str(find_data_file("config", name))
+
+
+# ------------------------------------------------------------------------------------------------
+# launch arguments
+# ------------------------------------------------------------------------------------------------
+_ROBOT = "robot of the simulation and of the server: gen3_lite, wam or a fixed-base arm of example-robot-data"
+
+
+@dataclasses.dataclass(frozen=True)
+class DemoArguments:
+    """Arguments of ``demo.launch.py`` and ``make run``."""
+
+    robot: str = param("gen3_lite", _ROBOT)
+    real_time_factor: float = param(1.0, "sim_bridge real_time_factor: simulated seconds per wall-clock second",
+                                    min=0.0, max=100.0)
+    stale_timeout: float = param(1.0, "primitive_server stale_timeout for the simulated robot (the server's "
+                                 "default 0.2 s suits a real arm; the Python simulation can pause longer on a "
+                                 "busy machine)", min=0.001, max=60.0, unit="s")
+
+
+@dataclasses.dataclass(frozen=True)
+class PrimitiveServerArguments:
+    """Arguments of ``primitive_server.launch.py`` (the server alone, for a real arm)."""
+
+    params_file: str = param("", "parameters file of primitive_server; empty = the package's "
+                             "config/primitive_server.yaml")
+    robot: str = param("", "robot whose joints and limits the server uses; empty = the parameters file's")
+    controller: str = param("", "JointTrajectory output goes to <controller>/joint_trajectory; empty = the "
+                            "parameters file's (joint_trajectory_controller by default)")
+    primitives_file: str = param("", "primitives to serve; empty = the parameters file's (the package's "
+                                 "config/primitives.yaml by default)")
+
+
+@dataclasses.dataclass(frozen=True)
+class RecordArguments:
+    """Arguments of ``record.launch.py`` (kinesthetic recording in simulation)."""
+
+    robot: str = param("gen3_lite", "robot of the simulation: gen3_lite, wam or a fixed-base arm of "
+                       "example-robot-data")
+    output_directory: str = param("", "dataset folder of the demonstrations; empty = demo_recorder.yaml's "
+                                  "(~/deepprompt_demos)")
+
+
+def _demo(a: DemoArguments) -> list[NodeDescription]:
+    return [
+        NodeDescription("sim_bridge", "sim_bridge", (_config("sim_bridge.yaml"),),
+                        {"robot": a.robot, "real_time_factor": a.real_time_factor}),
+        NodeDescription("primitive_server", "primitive_server", (_config("primitive_server.yaml"),),
+                        {"robot": a.robot, "stale_timeout": a.stale_timeout}),
+    ]
+
+
+def _primitive_server(a: PrimitiveServerArguments) -> list[NodeDescription]:
+    overrides = {k: v for k, v in (("robot", a.robot), ("controller", a.controller),
+                                   ("primitives_file", a.primitives_file)) if v}
+    return [NodeDescription("primitive_server", "primitive_server",
+                            (a.params_file or _config("primitive_server.yaml"),), overrides)]
+
+
+def _record(a: RecordArguments) -> list[NodeDescription]:
+    recorder = {"output_directory": a.output_directory} if a.output_directory else {}
+    return [
+        NodeDescription("sim_bridge", "sim_bridge", (_config("sim_bridge.yaml"),),
+                        {"robot": a.robot, "kinesthetic": True}),
+        NodeDescription("demo_recorder", "demo_recorder", (_config("demo_recorder.yaml"),), recorder),
+    ]
+
+
+class Launch(NamedTuple):
+    """A launch file: its arguments (a dataclass), its nodes from their values, what it is for."""
+
+    arguments: type
+    nodes: Callable[[Any], list[NodeDescription]]
+    description: str
+
+
+#: Launch name -> :class:`Launch`; ``launch/<name>.launch.py`` is the launch file.
+LAUNCHES: dict[str, Launch] = {
+    "demo": Launch(DemoArguments, _demo, "the simulated arm (sim_bridge) and primitive_server with the "
+                   "shipped primitives, ready for service calls (what make run starts)"),
+    "primitive_server": Launch(PrimitiveServerArguments, _primitive_server, "primitive_server alone, for a "
+                               "real arm: its driver publishes joint_states and runs the controller"),
+    "record": Launch(RecordArguments, _record, "kinesthetic recording: sim_bridge in kinesthetic mode and "
+                     "demo_recorder"),
+}
+
+
+def _launch(name: str) -> Launch:
+    if name not in LAUNCHES:
+        raise ValueError(f"unknown launch '{name}'; expected one of {', '.join(LAUNCHES)}")
+    return LAUNCHES[name]
+
+
+def arguments(launch: str) -> tuple[ParamSpec, ...]:
+    """The arguments of ``launch`` (name, default, description, range, choices)."""
+    return specs_of(_launch(launch).arguments)
+
+
+def argument_text(spec: ParamSpec, value=None) -> str:
+    """``value`` (default: the argument's default) as the string a launch argument holds."""
+    value = spec.default if value is None else value
+    return _ros_value(value) if spec.type in ("bool", "double[]", "string[]") else str(value)
+
+
+def launch_argument_kwargs(launch: str) -> list[dict[str, Any]]:
+    """Keyword arguments of ``launch.actions.DeclareLaunchArgument`` for each argument of ``launch``."""
+    out = []
+    for spec in arguments(launch):
+        unit = f" ({spec.unit})" if spec.unit else ""
+        kw = dict(name=spec.name, default_value=argument_text(spec), description=spec.description + unit)
+        if spec.choices:
+            kw["choices"] = list(spec.choices)
+        out.append(kw)
+    return out
+
+
+def _parse(spec: ParamSpec, text: str):
+    if spec.type == "string":
+        return text
+    import yaml
+
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError:
+        return text  # the check names it and what is expected
+
+
+def parse_arguments(launch: str, values: Mapping[str, str] | None = None):
+    """The arguments of ``launch`` from their string values (missing ones: defaults).
+
+    Raises
+    ------
+    ConfigError
+        Unknown or invalid arguments, each named with what is expected.
+    """
+    cls = _launch(launch).arguments
+    specs = {s.name: s for s in specs_of(cls)}
+    parsed = {k: _parse(specs[k], v) if k in specs and isinstance(v, str) else v
+              for k, v in (values or {}).items()}
+    try:
+        return from_mapping(cls, parsed)
+    except ConfigError as exc:  # "invalid <class> parameters:\n  <one line per problem>"
+        raise ConfigError(f"invalid arguments of launch '{launch}':\n" + str(exc).partition("\n")[2]) from None
+
+
+def nodes(launch: str, values: Mapping[str, str] | None = None) -> list[NodeDescription]:
+    """The nodes ``launch`` starts with the argument values ``values`` (strings; missing ones:
+    defaults). Raises :class:`ConfigError` for invalid arguments and FileNotFoundError when a
+    parameter file of the package is missing."""
+    return _launch(launch).nodes(parse_arguments(launch, values))
