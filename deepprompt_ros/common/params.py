@@ -170,5 +170,6 @@ def markdown_table(specs: Sequence[ParamSpec]) -> str:
         else:
             rng = p.unit
         default = list(p.default) if isinstance(p.default, tuple) else p.default
-        rows.append(f"| `{p.name}` | {p.type} | `{default!r}` | {rng} | {p.description} |")
+        description = p.description.replace("|", "\\|")  # a '|' of the text would end the cell
+        rows.append(f"| `{p.name}` | {p.type} | `{default!r}` | {rng} | {description} |")
     return "\n".join(rows)
