@@ -14,7 +14,7 @@
 #   5. pip install -e . --no-deps, so `import deepprompt_ros` works from anywhere
 #      and follows the sources (stamp: sha256 of setup.py and setup.cfg);
 #   6. ROS install layout (tools/install_ros_layout.py; always run): launchers in
-#      VENV/lib/deepprompt_ros/, share/deepprompt_ros/{package.xml,config,models},
+#      VENV/lib/deepprompt_ros/, share/deepprompt_ros/{package.xml,config,models,launch,urdf},
 #      ament index marker. `ros2 run deepprompt_ros <exe>` then finds them with
 #      VENV on AMENT_PREFIX_PATH.
 # --check: change nothing; list what is out of date and exit 1 if anything is.
