@@ -1,4 +1,4 @@
-"""Demo recording: the ROS-free core (deepprompt_ros.recording.recorder) in-process, then the
+"""Demo recording: the ROS-free core (deepprompt_ros.recording) in-process, then the
 demo_recorder node as a real process next to a real sim_bridge process (localhost DDS, random
 domain): a kinesthetic demonstration guided in the simulation, bad requests, crash safety."""
 import pathlib
@@ -17,7 +17,16 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import SetBool, Trigger
 
 from deepprompt_ros.common.params import specs_of
-from deepprompt_ros.recording import recorder as rec
+from deepprompt_ros.recording.bag_writer import BagWriter, message_definition, qos_profile_yaml
+from deepprompt_ros.recording.checks import (
+    RecordingError,
+    check_writable_directory,
+    default_demo_name,
+    parse_context_spec,
+    validate_demo_name,
+)
+from deepprompt_ros.recording.demo_buffer import DemoBuffer
+from deepprompt_ros.recording.images import ImageKeeper, resize_image
 from deepprompt_ros.recording.config import RecorderConfig
 from deepprompt_ros.data.demo_dataset import load_dataset
 from deepprompt_ros.data.io import load_demo
@@ -44,19 +53,19 @@ def _read_mcap(path):
 # core, in-process
 # ==============================================================================================
 def test_message_definition_has_each_dependency_once():
-    text = rec.message_definition("geometry_msgs/msg/PoseStamped")
+    text = message_definition("geometry_msgs/msg/PoseStamped")
     headers = [line for line in text.splitlines() if line.startswith("MSG: ")]
     assert headers == ["MSG: std_msgs/Header", "MSG: builtin_interfaces/Time", "MSG: geometry_msgs/Pose",
                        "MSG: geometry_msgs/Point", "MSG: geometry_msgs/Quaternion"]
     assert text.count("=" * 80 + "\n") == 5
-    with pytest.raises(rec.RecordingError, match="share/nope_msgs/msg/Foo.msg"):
-        rec.message_definition("nope_msgs/msg/Foo")
+    with pytest.raises(RecordingError, match="share/nope_msgs/msg/Foo.msg"):
+        message_definition("nope_msgs/msg/Foo")
 
 
 def test_bag_writer_round_trip(tmp_path):
     rng = np.random.default_rng(0)
-    bag = rec.BagWriter(tmp_path, "b1")
-    bag.add_topic("/joint_states", "sensor_msgs/msg/JointState", offered_qos_profiles=rec.qos_profile_yaml())
+    bag = BagWriter(tmp_path, "b1")
+    bag.add_topic("/joint_states", "sensor_msgs/msg/JointState", offered_qos_profiles=qos_profile_yaml())
     bag.add_topic("/objects/cube/pose", "geometry_msgs/msg/PoseStamped")
     sent = []
     for i in range(50):
@@ -66,7 +75,7 @@ def test_bag_writer_round_trip(tmp_path):
                   1_000_000_000 + i * 1_000_000)
     for i in range(5):
         bag.write("/objects/cube/pose", serialize_message(conv.pose_stamped([i, 0, 0])), 1_000_000_000 + i)
-    with pytest.raises(rec.RecordingError, match="not added"):
+    with pytest.raises(RecordingError, match="not added"):
         bag.write("/other", b"", 0)
     assert not (tmp_path / "b1").exists()  # only the hidden temporary folder while writing
     path = bag.close()
@@ -87,12 +96,12 @@ def test_bag_writer_round_trip(tmp_path):
     assert meta["duration"]["nanoseconds"] == 49_000_000
     qos = yaml.safe_load(meta["topics_with_message_count"][0]["topic_metadata"]["offered_qos_profiles"])
     assert qos[0]["reliability"] == "reliable" and qos[0]["history"] == "keep_last"
-    with pytest.raises(rec.RecordingError, match="exists already"):
-        rec.BagWriter(tmp_path, "b1")
+    with pytest.raises(RecordingError, match="exists already"):
+        BagWriter(tmp_path, "b1")
 
 
 def test_bag_writer_abort_leaves_nothing(tmp_path):
-    bag = rec.BagWriter(tmp_path, "gone")
+    bag = BagWriter(tmp_path, "gone")
     bag.add_topic("/joint_states", "sensor_msgs/msg/JointState")
     bag.write("/joint_states", serialize_message(JointState()), 1)
     bag.abort()
@@ -103,34 +112,34 @@ def test_resize_image_area_average():
     rng = np.random.default_rng(1)
     blocks = rng.integers(0, 256, size=(3, 4, 3)).astype(np.uint8)
     img = np.repeat(np.repeat(blocks, 5, axis=0), 5, axis=1)  # 15 x 20, constant 5x5 blocks
-    np.testing.assert_array_equal(rec.resize_image(img, 3, 4), blocks)
-    small = rec.resize_image(rng.integers(0, 256, size=(48, 64, 3), dtype=np.uint8), 10, 7)
+    np.testing.assert_array_equal(resize_image(img, 3, 4), blocks)
+    small = resize_image(rng.integers(0, 256, size=(48, 64, 3), dtype=np.uint8), 10, 7)
     assert small.shape == (10, 7, 3) and small.dtype == np.uint8
     flat = np.full((31, 17, 3), 123, dtype=np.uint8)
-    np.testing.assert_array_equal(rec.resize_image(flat, 8, 40), 123)  # any ratio, also enlarging
+    np.testing.assert_array_equal(resize_image(flat, 8, 40), 123)  # any ratio, also enlarging
     two = np.zeros((2, 2, 3), dtype=np.uint8)
     two[:, 1] = 200
-    np.testing.assert_array_equal(rec.resize_image(two, 1, 1), 100)
-    with pytest.raises(rec.RecordingError, match=r"uint8 with shape \(H, W, 3\)"):
-        rec.resize_image(np.zeros((4, 4)), 2, 2)
+    np.testing.assert_array_equal(resize_image(two, 1, 1), 100)
+    with pytest.raises(RecordingError, match=r"uint8 with shape \(H, W, 3\)"):
+        resize_image(np.zeros((4, 4)), 2, 2)
 
 
 def test_image_keeper_is_bounded_and_spread_over_the_recording():
-    keeper = rec.ImageKeeper(max_images=4, height=2, width=2)
+    keeper = ImageKeeper(max_images=4, height=2, width=2)
     for i in range(1000):
         keeper.add(np.full((6, 6, 3), i % 256, dtype=np.uint8) if i < 256 else np.full((6, 6, 3), 255, np.uint8))
         assert len(keeper) < keeper.capacity
     sel = keeper.selected()
     assert sel.shape == (4, 2, 2, 3)
     assert sel[0, 0, 0, 0] == 0 and sel[-1, 0, 0, 0] == 255  # first and last part of the recording
-    few = rec.ImageKeeper(max_images=4, height=2, width=2)
+    few = ImageKeeper(max_images=4, height=2, width=2)
     few.add(np.zeros((3, 3, 3), np.uint8))
     assert few.selected().shape == (1, 2, 2, 3)
-    assert rec.ImageKeeper(2, 2, 2).selected() is None
+    assert ImageKeeper(2, 2, 2).selected() is None
 
 
 def test_demo_buffer():
-    buf = rec.DemoBuffer("d1", ["b", "a"], max_images=2, image_height=4, image_width=4)
+    buf = DemoBuffer("d1", ["b", "a"], max_images=2, image_height=4, image_width=4)
     assert buf.add_joint_state(1_000_000_000, ["a", "b", "c"], [1.0, 2.0, 3.0])
     assert not buf.add_joint_state(1_000_000_000, ["a", "b"], [0.0, 0.0])  # same stamp
     assert not buf.add_joint_state(1_001_000_000, ["a"], [0.0])  # joint b missing
@@ -146,26 +155,26 @@ def test_demo_buffer():
     assert demo.joint_names == ("b", "a")
     np.testing.assert_array_equal(demo.contexts["object"], [[0.3, 0.1, 0.0]])
     assert demo.images.shape == (1, 4, 4, 3)
-    empty = rec.DemoBuffer("d2", ["a"])
+    empty = DemoBuffer("d2", ["a"])
     empty.add_joint_state(1, ["x"], [0.0])
-    with pytest.raises(rec.RecordingError, match=r"0 joint sample\(s\); at least 2.*1 message\(s\) lacked"):
+    with pytest.raises(RecordingError, match=r"0 joint sample\(s\); at least 2.*1 message\(s\) lacked"):
         empty.to_demonstration()
 
 
 def test_recording_helpers(tmp_path):
-    assert rec.parse_context_spec("object=objects/cube/pose") == ("object", "objects/cube/pose")
-    assert rec.parse_context_spec("/camera/image_raw") == ("camera_image_raw", "/camera/image_raw")
-    with pytest.raises(rec.RecordingError, match="context name"):
-        rec.parse_context_spec("1x=topic")
+    assert parse_context_spec("object=objects/cube/pose") == ("object", "objects/cube/pose")
+    assert parse_context_spec("/camera/image_raw") == ("camera_image_raw", "/camera/image_raw")
+    with pytest.raises(RecordingError, match="context name"):
+        parse_context_spec("1x=topic")
     for bad in ["", "../x", "a/b", "-x", "x" * 101]:
-        with pytest.raises(rec.RecordingError, match="not valid"):
-            rec.validate_demo_name(bad)
-    assert rec.validate_demo_name(rec.default_demo_name())
+        with pytest.raises(RecordingError, match="not valid"):
+            validate_demo_name(bad)
+    assert validate_demo_name(default_demo_name())
     a_file = tmp_path / "file"
     a_file.write_text("")
-    with pytest.raises(rec.RecordingError, match="not a writable folder"):
-        rec.check_writable_directory(a_file / "sub")
-    assert rec.check_writable_directory(tmp_path / "new" / "dir").is_dir()
+    with pytest.raises(RecordingError, match="not a writable folder"):
+        check_writable_directory(a_file / "sub")
+    assert check_writable_directory(tmp_path / "new" / "dir").is_dir()
 
 
 def test_config_file_documents_the_declared_parameters():

@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 
 from deepprompt_ros.common.params import ConfigError, param, validate
-from deepprompt_ros.recording.recorder import RecordingError, parse_context_spec
+from deepprompt_ros.recording.checks import RecordingError, parse_context_spec
 
 __all__ = ["RecorderConfig"]
 

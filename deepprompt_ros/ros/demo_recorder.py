@@ -20,7 +20,7 @@ sensor_msgs/Image topic (rgb8 / bgr8) ``max_images`` images spread over the reco
 
 On stop: ``<output_directory>/<name>.npz`` (:func:`~deepprompt_ros.data.io.save_demo`,
 atomic) and the bag folder ``<bag_directory>/<name>/`` (``metadata.yaml`` + ``<name>_0.mcap``,
-renamed into place when complete; see :mod:`deepprompt_ros.recording.recorder`). A recorder killed
+renamed into place when complete; see :mod:`deepprompt_ros.recording.bag_writer`). A recorder killed
 mid-recording leaves the finished demonstrations intact and only a hidden ``.part`` folder.
 
 Bad requests (start while recording, stop while not recording, no recent joint state, missing
@@ -46,16 +46,15 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 
 from deepprompt_ros.data.io import save_demo
-from deepprompt_ros.recording.recorder import (
-    BagWriter,
-    DemoBuffer,
+from deepprompt_ros.recording.bag_writer import BagWriter, qos_profile_yaml
+from deepprompt_ros.recording.checks import (
     RecordingError,
     check_writable_directory,
     default_demo_name,
     parse_context_spec,
-    qos_profile_yaml,
     validate_demo_name,
 )
+from deepprompt_ros.recording.demo_buffer import DemoBuffer
 from deepprompt_ros.common.params import ConfigError
 from deepprompt_ros.recording.config import RecorderConfig
 from deepprompt_ros.ros import conversions as conv
