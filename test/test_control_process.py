@@ -2,7 +2,7 @@
 a crash of the child ends the running goal with INTERNAL_ERROR (no hang) and a new child takes
 over; the child dies with the server (no orphan); every thread of the child runs SCHED_FIFO by
 default (or the refusal is logged); ``control_cpu`` pins it; the in-process mode (loop_process:
-false) still executes. Real processes, real DDS (LOCALHOST discovery, random domain)."""
+false) still executes, with the fast path and with plain rclpy. Real processes, real DDS (LOCALHOST discovery, random domain)."""
 import contextlib
 import os
 import pathlib
@@ -157,8 +157,9 @@ def serving(tmp_path, name, params):
         sim.stop()
 
 
-def test_in_process_loop_still_executes(tmp_path):
-    with serving(tmp_path, "inproc", {"loop_process": False}) as (client, ac, server):
+@pytest.mark.parametrize("fast_path", [True, False], ids=["fast_path", "plain_rclpy"])
+def test_in_process_loop_still_executes(tmp_path, fast_path):
+    with serving(tmp_path, "inproc", {"loop_process": False, "fast_path": fast_path}) as (client, ac, server):
         res = run_goal(client, ac, server, 1.5)
         assert res.success, res.message
         assert "in this process" in server.output() and not CHILD.search(server.output())

@@ -110,20 +110,3 @@ def test_durations():
     assert conv.duration_to_sec(conv.sec_to_duration(0.0015)) == pytest.approx(0.0015, abs=1e-12)
     with pytest.raises(ValueError):
         conv.sec_to_duration(-1.0)
-
-
-def test_joint_state_serializer_matches_a_built_message():
-    from sensor_msgs.msg import JointState
-
-    names = [f"joint_{i}" for i in range(1, 7)]
-    ser = conv.JointStateSerializer(names)
-    rng = np.random.default_rng(5)
-    for _ in range(3):  # the same buffer is reused: every call carries its own numbers
-        q, qd = rng.normal(size=6), rng.normal(size=6)
-        m = deserialize_message(ser(q, qd, 1_700_000_000_123_456_789), JointState)
-        assert list(m.name) == names and list(m.effort) == []
-        np.testing.assert_array_equal(m.position, q)
-        np.testing.assert_array_equal(m.velocity, qd)
-        assert (m.header.stamp.sec, m.header.stamp.nanosec) == (1_700_000_000, 123_456_789)
-    with pytest.raises(ValueError, match="effort=True"):
-        ser(q, qd, 0, effort=np.zeros(6))  # this serializer carries no efforts

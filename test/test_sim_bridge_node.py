@@ -18,7 +18,7 @@ from deepprompt_ros.robots.kinematics import RobotKinematics
 from deepprompt_ros.robots.spec import load_robot
 from deepprompt_ros.ros import conversions as conv
 from deepprompt_ros.common.params import specs_of
-from deepprompt_ros.ros.sim_bridge import ClockSerializer, CommandReader
+from deepprompt_ros.ros.fastpath.wire import ClockSerializer, CommandReader, JointStateSerializer
 from deepprompt_ros.ros.testing import NodeProcess, RosTestClient, isolated_ros_env
 from deepprompt_ros.sim.bridge_config import ObjectConfig, SimBridgeConfig
 
@@ -152,7 +152,7 @@ def test_serialized_joint_states_clock_and_commands_match_the_messages():
     from rclpy.serialization import deserialize_message, serialize_message
 
     rng = np.random.default_rng(3)
-    ser = conv.JointStateSerializer(SPEC.joint_names, effort=True)
+    ser = JointStateSerializer(SPEC.joint_names, effort=True)
     for stamp in (0, 1_795_000_000_123_456_789, 2**31 * 10**9 - 1):
         q, qd, eff = rng.normal(size=(3, 6))
         m = deserialize_message(ser(q, qd, stamp, eff), JointState)

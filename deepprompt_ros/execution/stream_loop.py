@@ -167,8 +167,13 @@ class StreamLoop:
         if goal is None or goal.stage in (Stage.STOPPING, Stage.DONE):
             raise RequestError(Code.NO_ACTIVE_EXECUTION, "no Execute goal is running; SetPhaseRate changes the "
                                "rate of a running goal")
-        self._commands.append(("rate", goal, float(rate)))
+        self.set_goal_rate(goal, rate)
         return goal
+
+    def set_goal_rate(self, goal: ExecutionGoal, rate: float) -> None:
+        """Queue a phase-rate change of ``goal``: applied at the next tick if ``goal`` then runs (after
+        the goals queued before it have started), ignored otherwise."""
+        self._commands.append(("rate", goal, float(rate)))
 
     def summary(self) -> str:
         """One line about the loop so far (ticks, late ticks, longest tick, CPU per tick, pacing)."""

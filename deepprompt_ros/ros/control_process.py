@@ -6,22 +6,20 @@ inside the handler and the loop missed thousands of periods per minute (README "
 figures"). Here the child process owns everything that runs per tick: the
 :class:`~deepprompt_ros.execution.stream_loop.StreamLoop` with its controller, the ``joint_command``
 and JointTrajectory publishers and the joint_states reader (:class:`~deepprompt_ros.ros.loop_io.LoopIO`),
-on its own rclpy context and node (``<server>_control``, same namespace, topic names resolved by
-the server so remappings apply). The server keeps the services and the Execute action.
+on its own rclpy context and its one node (``<server>_control``, same namespace, topic names
+resolved by the server so remappings apply). The server keeps the services and the Execute action.
+With ``fast_path: false`` the child also spins its node with an executor (the joint_states
+subscription is then an ordinary callback).
 
-Link: one Unix socket pair (``multiprocessing.connection.Connection``, pickled tuples).
-
-* server -> child: ``("init", {...})`` once (limits, dt, ServerConfig, joint names, topics, node
-  name), then ``("start", key, ExecutionPlan)`` (the per-Execute decoded dense trajectory),
-  ``("cancel", key)``, ``("rate", key, phase_rate)``, ``("stop",)``;
-* child -> server: ``("ready", pid, warnings)`` (refused priority or CPU), every ``STATUS_PERIOD`` s
-  ``("status", joint_states stamp, key, Stage, Progress)`` of the running goal (Execute feedback,
-  SetPhaseRate's check, the stale check of a new Execute), ``("done", key, Outcome, loop summary)``
-  when a goal's last sample has been published.
+Link: one Unix socket pair (``multiprocessing.connection.Connection``) carrying the typed messages
+of :mod:`deepprompt_ros.execution.commands`: server -> child a ``LoopSetup`` once, then
+``StartGoal`` (the per-Execute decoded dense trajectory), ``CancelGoal``, ``SetGoalRate``,
+``StopLoop``; child -> server ``LoopReady`` (with the refused priority or CPU), a ``LoopStatus``
+every ``STATUS_PERIOD`` s and a ``GoalDone`` when a goal's last sample has been published.
 
 Lifetime: the child asks the kernel to kill it when the server dies (``PR_SET_PDEATHSIG``),
 exits when the link closes, and ignores SIGINT (it shares the server's process group; the
-server stops it with ``("stop",)`` on its way down). If the child exits unexpectedly, every
+server stops it with ``StopLoop`` on its way down). If the child exits unexpectedly, every
 pending goal ends with INTERNAL_ERROR (the action never hangs), the error is logged, and a new
 child is started (at most ``MAX_RESTARTS`` times).
 """
@@ -42,6 +40,8 @@ import time  # noqa: E402
 from multiprocessing.connection import Connection  # noqa: E402
 
 from deepprompt_ros.server.requests import Code, RequestError  # noqa: E402
+from deepprompt_ros.execution.commands import (CancelGoal, GoalDone, LoopReady, LoopSetup, LoopStatus,  # noqa: E402
+                                               SetGoalRate, StartGoal, StopLoop)
 from deepprompt_ros.execution.controller import ExecutionGoal, Outcome, Stage  # noqa: E402
 from deepprompt_ros.ros.fastpath import realtime  # noqa: E402
 
@@ -58,16 +58,15 @@ class ControlProcess:
 
     Parameters
     ----------
-    init : dict
-        limits (JointLimits), dt (s), cfg (ServerConfig), names (joint names), command_topic,
-        trajectory_topic, joint_states_topic (resolved; '' = off), node_name, namespace.
+    setup : LoopSetup
+        What every child (the first and each restarted one) is built from.
     logger : rclpy logger of the server (child exits and restarts are reported there).
     """
 
     MAX_RESTARTS = 5
 
-    def __init__(self, init: dict, logger):
-        self._init = dict(init)
+    def __init__(self, setup: LoopSetup, logger):
+        self._setup = setup
         self._log = logger
         self._lock = threading.Lock()
         self._goals: dict[int, ExecutionGoal] = {}
@@ -93,7 +92,7 @@ class ControlProcess:
         self.pid = self.proc.pid
         self._conn = Connection(ours.detach())
         self._stamp = None
-        self._conn.send(("init", self._init))
+        self._conn.send(self._setup)
         self._reader = threading.Thread(target=self._read, args=(self._conn, self.proc), name="control_link",
                                         daemon=True)
         self._reader.start()
@@ -136,28 +135,27 @@ class ControlProcess:
         self._log.warn(f"control process restarted (pid {self.pid}, restart {self.restarts})")
 
     def _handle(self, msg) -> None:
-        kind = msg[0]
-        if kind == "status":
-            _, stamp, key, stage, progress = msg
-            self._stamp = stamp
-            goal = self._goals.get(key)
-            if goal is not None and progress is not None and not goal.done.is_set():
-                goal._progress, goal._tracking_error = progress, progress.tracking_error
-                goal.stage = stage
-        elif kind == "done":
-            _, key, outcome, summary = msg
-            self._summary = summary
+        if isinstance(msg, LoopStatus):
+            self._stamp = msg.joint_states_stamp
+            goal = self._goals.get(msg.key)
+            if goal is not None and msg.progress is not None and not goal.done.is_set():
+                goal._progress, goal._tracking_error = msg.progress, msg.progress.tracking_error
+                goal.stage = msg.stage
+        elif isinstance(msg, GoalDone):
+            self._summary = msg.loop_summary
             with self._lock:
-                goal = self._goals.pop(key, None)
+                goal = self._goals.pop(msg.key, None)
             if goal is not None:
-                goal.max_tracking_error = max(goal.max_tracking_error, outcome.max_tracking_error)
-                goal._finish(outcome)
-        elif kind == "ready":
-            _, pid, self.warnings = msg
+                goal.max_tracking_error = max(goal.max_tracking_error, msg.outcome.max_tracking_error)
+                goal._finish(msg.outcome)
+        elif isinstance(msg, LoopReady):
+            self.warnings = msg.warnings
             self._ready.set()
-            self._log.info(f"control loop running in its own process (pid {pid})")
+            self._log.info(f"control loop running in its own process (pid {msg.pid})")
             if self.warnings:
                 self._log.warn(self.warnings)
+        else:
+            raise TypeError(f"unexpected message from the control process: {msg!r}")
 
     def _send(self, msg) -> None:
         try:
@@ -179,14 +177,14 @@ class ControlProcess:
             goal._link_key = key = next(self._keys)
             self._goals[key] = goal
             self._latest = goal
-            self._send(("start", key, goal.plan))
+            self._send(StartGoal(key, goal.plan))
         return goal
 
     def cancel(self, goal: ExecutionGoal) -> None:
         key = getattr(goal, "_link_key", None)
         if key is not None and not goal.done.is_set():
             with self._lock:
-                self._send(("cancel", key))
+                self._send(CancelGoal(key))
 
     @property
     def active_goal(self) -> ExecutionGoal | None:
@@ -199,7 +197,7 @@ class ControlProcess:
             raise RequestError(Code.NO_ACTIVE_EXECUTION, "no Execute goal is running; SetPhaseRate changes the "
                                "rate of a running goal")
         with self._lock:
-            self._send(("rate", goal._link_key, float(rate)))
+            self._send(SetGoalRate(goal._link_key, float(rate)))
         return goal
 
     def measured_age(self) -> float:
@@ -213,7 +211,7 @@ class ControlProcess:
     def shutdown(self, timeout: float = 3.0) -> None:
         with self._lock:
             self._stopping = True
-            self._send(("stop",))
+            self._send(StopLoop())
         try:
             self.proc.wait(timeout)
         except (subprocess.TimeoutExpired, KeyboardInterrupt):  # (a second SIGINT while waiting)
@@ -252,9 +250,10 @@ def _child(fd: int, parent_pid: int) -> int:
         return 1
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server stops this process through the link
     conn = Connection(fd)
-    kind, init = conn.recv()
-    assert kind == "init", kind
-    cfg = init["cfg"]
+    setup = conn.recv()
+    if not isinstance(setup, LoopSetup):
+        raise TypeError(f"the control process expects a LoopSetup first; got {setup!r}")
+    cfg = setup.config
     warnings = []
     if cfg.control_cpu >= 0:  # before any thread exists: all inherit it
         warnings.append(realtime.set_cpu_affinity(cfg.control_cpu, "the control process"))
@@ -268,6 +267,7 @@ def _child(fd: int, parent_pid: int) -> int:
         realtime.set_fifo_priority(cfg.realtime_priority)  # refused: the control thread reports it
 
     import rclpy
+    from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
     from deepprompt_ros.ros.loop_io import LoopIO
@@ -276,11 +276,11 @@ def _child(fd: int, parent_pid: int) -> int:
 
     realtime.set_switch_interval(cfg.gil_switch_interval)
     rclpy.init(args=[], signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node(init["node_name"], namespace=init["namespace"], start_parameter_services=False)
+    node = rclpy.create_node(setup.node_name, namespace=setup.namespace, start_parameter_services=False)
     log = node.get_logger()
-    io = LoopIO(node, init["names"], init["limits"], cfg, init["command_topic"], init["trajectory_topic"],
-                init["joint_states_topic"])
-    loop = StreamLoop(ExecutionController(init["limits"], init["dt"], cfg), cfg, io.publish_command,
+    io = LoopIO(node, setup.joint_names, setup.limits, cfg, setup.command_topic, setup.trajectory_topic,
+                setup.joint_states_topic)
+    loop = StreamLoop(ExecutionController(setup.limits, setup.dt, cfg), cfg, io.publish_command,
                       io.publish_trajectory, on_error=lambda m: log.error(m, throttle_duration_sec=1.0),
                       poll_measured=io.poll_joint_state, thread_setup=realtime.prepare_thread)
     io.on_measured = loop.update_measured
@@ -297,43 +297,60 @@ def _child(fd: int, parent_pid: int) -> int:
         try:
             while True:
                 msg = conn.recv()
-                if msg[0] == "start":
-                    goal = goals[msg[1]] = _LinkedGoal(msg[2], msg[1], wake)
+                if isinstance(msg, StartGoal):
+                    goal = goals[msg.key] = _LinkedGoal(msg.plan, msg.key, wake)
                     loop.execute(goal)
-                elif msg[0] == "cancel":
-                    if (goal := goals.get(msg[1])) is not None:
+                elif isinstance(msg, CancelGoal):
+                    if (goal := goals.get(msg.key)) is not None:
                         loop.cancel(goal)
-                elif msg[0] == "rate":
-                    if (goal := goals.get(msg[1])) is not None:
-                        loop._commands.append(("rate", goal, msg[2]))
-                elif msg[0] == "stop":
+                elif isinstance(msg, SetGoalRate):
+                    if (goal := goals.get(msg.key)) is not None:
+                        loop.set_goal_rate(goal, msg.phase_rate)
+                elif isinstance(msg, StopLoop):
                     break
+                else:
+                    log.error(f"control process: unexpected message {msg!r} ignored")
         except (EOFError, OSError):
             pass
         stop.set()
         wake.set()
 
+    executor = None
+    if io.poll_joint_state is None:  # plain rclpy: joint_states arrive through an executor callback
+        executor = SingleThreadedExecutor(context=node.context)
+        executor.add_node(node)
+
+        def spin() -> None:
+            realtime.name_os_thread("executor")
+            try:
+                executor.spin()
+            except Exception:  # shut down
+                pass
+
+        threading.Thread(target=spin, name="executor", daemon=True).start()
     loop.start(threaded=True)
     loop.started.wait(5.0)
     threading.Thread(target=receive, name="link_reader", daemon=True).start()
     realtime.freeze_startup_objects()
     try:
-        send(("ready", os.getpid(), "; ".join(w for w in (*warnings, loop.priority_error) if w)))  # warnings
+        send(LoopReady(os.getpid(), "; ".join(w for w in (*warnings, loop.priority_error) if w)))
         while not stop.is_set():
             wake.wait(STATUS_PERIOD)
             wake.clear()
             for key, goal in list(goals.items()):
                 if goal.done.is_set():
                     del goals[key]
-                    send(("done", key, goal.outcome, loop.summary()))
+                    send(GoalDone(key, goal.outcome, loop.summary()))
             a = loop.active_goal
             m = loop.measured
-            send(("status", None if m is None else m.stamp, None if a is None else a.key,
-                  None if a is None else a.stage, None if a is None else a.progress))
+            send(LoopStatus(None if m is None else m.stamp, None if a is None else a.key,
+                            None if a is None else a.stage, None if a is None else a.progress))
     except (OSError, EOFError):
         pass
     finally:
         loop.shutdown()
+        if executor is not None:
+            executor.shutdown(timeout_sec=1.0)
         io.destroy()
         node.destroy_node()
         rclpy.try_shutdown()

@@ -38,7 +38,7 @@ __all__ = [
     "sec_to_duration", "duration_to_sec", "via_points_from_msgs", "via_points_to_msgs", "image_fields",
     "contexts_from_msgs", "preview_to_msg", "PreviewArrays", "preview_from_msg", "primitive_info_to_msg",
     "samples_to_response", "samples_from_response", "joint_trajectory", "TrajectoryArrays",
-    "joint_trajectory_to_arrays", "JointStateSerializer",
+    "joint_trajectory_to_arrays",
 ]
 
 
@@ -560,94 +560,3 @@ def joint_trajectory_to_arrays(msg) -> TrajectoryArrays:
             raise ValueError(f"JointTrajectory point {field} have lengths {sorted(lens)}; expected {d}")
         out.append(np.array([np.asarray(getattr(p, field), dtype=np.float64) for p in pts]).reshape(len(pts), d))
     return TrajectoryArrays(tuple(msg.joint_names), stamp_to_ns(msg.header.stamp), t, *out)
-
-
-class JointStateSerializer:
-    """Fast ``sensor_msgs/JointState`` serialization for fixed joint names (a per-tick command).
-
-    Building and serializing a JointState message in Python costs ~0.1 ms; at 1 kHz that is a
-    tenth of the period. With fixed names the CDR bytes differ only in the stamp and the numbers,
-    so a template is serialized once and those fields are overwritten in place (offsets found by
-    serializing sentinel values). ``rclpy`` publishers accept the returned ``bytes``.
-
-    Parameters
-    ----------
-    names : sequence of str, length n
-    frame_id : str
-    effort : bool
-        Also carry efforts (n,) — a measured state — instead of an empty effort field.
-    """
-
-    def __init__(self, names: Sequence[str], frame_id: str = "", effort: bool = False):
-        from rclpy.serialization import serialize_message
-
-        n = len(names)
-        self.names = tuple(str(x) for x in names)
-        sent_p = [1.0e300 + 1.0e285 * (i + 1) for i in range(n)]
-        sent_v = [-1.0e300 - 1.0e285 * (i + 1) for i in range(n)]
-        sent_e = [0.5e300 + 1.0e285 * (i + 1) for i in range(n)] if effort else []
-        msg = JointState(name=list(self.names), position=sent_p, velocity=sent_v, effort=sent_e)
-        msg.header.frame_id = frame_id
-        msg.header.stamp = Time(sec=0x5A3C2E1F, nanosec=0x2B4D6F13)
-        data = serialize_message(msg)
-        self._with_effort = bool(effort)
-        self._eff_view = None
-        self._fallback = data[:2] != b"\x00\x01"  # not little-endian CDR: build messages instead
-        self._template = np.frombuffer(data, dtype=np.uint8).copy()
-        if not self._fallback:
-            raw = bytes(self._template)
-
-            def offset(value: bytes) -> int:
-                i = raw.find(value)
-                if i < 0 or raw.find(value, i + 1) >= 0:
-                    raise ValueError("JointState template layout not recognised")
-                return i
-
-            self._p = offset(np.float64(sent_p[0]).tobytes())
-            self._v = offset(np.float64(sent_v[0]).tobytes())
-            self._e = offset(np.float64(sent_e[0]).tobytes()) if effort else None
-            self._sec = offset(np.int32(0x5A3C2E1F).tobytes())
-            self._nsec = offset(np.uint32(0x2B4D6F13).tobytes())
-        self._buf = self._template.copy()
-        self._n = n
-        if not self._fallback:
-            # writable little-endian views of the numbers in the message buffer: each call
-            # writes through them (no temporary arrays)
-            b = self._buf
-            self._pos_view = np.frombuffer(b, dtype="<f8", count=n, offset=self._p)
-            self._vel_view = np.frombuffer(b, dtype="<f8", count=n, offset=self._v)
-            if effort:
-                self._eff_view = np.frombuffer(b, dtype="<f8", count=n, offset=self._e)
-            self._sec_view = np.frombuffer(b, dtype="<i4", count=1, offset=self._sec)
-            self._nsec_view = np.frombuffer(b, dtype="<u4", count=1, offset=self._nsec)
-
-    def __call__(self, position, velocity, stamp_ns: int = 0, effort=None) -> bytes:
-        """CDR bytes of a JointState with these positions / velocities (n,) and header.stamp (and the
-        efforts (n,), required exactly when the serializer was made with ``effort=True``)."""
-        if (effort is not None) != self._with_effort:
-            raise ValueError("efforts are given exactly when the serializer was made with effort=True")
-        if self._fallback:
-            from rclpy.serialization import serialize_message
-
-            return serialize_message(arrays_to_joint_state(self.names, position, velocity, effort, stamp_ns=stamp_ns))
-        pos, vel = self._pos_view, self._vel_view
-        if type(position) is not np.ndarray or position.shape != pos.shape:
-            self._check_shape("position", position)
-        if type(velocity) is not np.ndarray or velocity.shape != vel.shape:
-            self._check_shape("velocity", velocity)
-        pos[:] = position
-        vel[:] = velocity
-        if effort is not None:
-            if type(effort) is not np.ndarray or effort.shape != pos.shape:
-                self._check_shape("effort", effort)
-            self._eff_view[:] = effort
-        sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
-        self._sec_view[0] = sec
-        self._nsec_view[0] = nsec
-        return self._buf.tobytes()
-
-    def _check_shape(self, label: str, values) -> None:
-        shape = np.shape(values)
-        if shape != (self._n,):
-            raise ValueError(f"{label} has shape {shape}; expected ({self._n},), one value per joint: "
-                             f"{', '.join(self.names)}")

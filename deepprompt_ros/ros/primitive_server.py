@@ -18,12 +18,14 @@ Interfaces (``~`` = the node's name, ``/primitive_server`` by default):
 
 Processes and threads: by default (``loop_process: true``) the command stream runs in a child
 process, ``python -m deepprompt_ros.ros.control_process`` (threads ``control_loop`` and
-``jtc_publisher`` of ros.stream_loop, its own rclpy context and interpreter lock; see that module
-for the link, its lifetime and crash handling). With ``loop_process: false`` or ``loop_mode:
-timer`` those threads run in this process. Here: ``services`` (waits on the five service handles
-and answers each request itself), the executor's (action, parameters) and ``control_link`` (the
-child's status and outcomes). Start-up objects are frozen out of the garbage collector
-(``gc.freeze``): a full collection over them stalled every thread for 50-220 ms.
+``jtc_publisher`` of execution.stream_loop, its own rclpy context, node and interpreter lock; see
+that module for the link, its lifetime and crash handling). With ``loop_process: false`` or
+``loop_mode: timer`` those threads run in this process. Here: ``services`` (``fast_path: true``:
+waits on the five services and answers each request itself, see ros.fastpath.service_thread;
+``fast_path: false``: the executor dispatches them, one at a time), the executor's (action,
+parameters) and ``control_link`` (the child's status and outcomes). One node per process: this
+one, ``<name>_control`` in the child. Start-up objects are frozen out of the garbage collector
+(``gc.freeze``, see ros.fastpath.realtime): a full collection over them stalls every thread.
 
 Start-up: invalid parameters or no servable primitive -> a log line per problem and exit code 2.
 Primitives that cannot be served (missing file, joints that are not the robot's, corrupt model)
@@ -40,12 +42,10 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import collections  # noqa: E402
-import contextlib  # noqa: E402
 import functools  # noqa: E402
 import math  # noqa: E402
 import pathlib  # noqa: E402
 import sys  # noqa: E402
-import threading  # noqa: E402
 import time  # noqa: E402
 import traceback  # noqa: E402
 
@@ -57,9 +57,6 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
-from rclpy.exceptions import InvalidHandle
-from rclpy.guard_condition import GuardCondition
-from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 
 from deepprompt_ros import paths
@@ -70,13 +67,15 @@ from deepprompt_ros.server.requests import (BlendRequest, Code, ConditionRequest
                                             SampleRequest)
 from deepprompt_ros.server.service import PrimitiveServerCore
 from deepprompt_ros.ros import conversions as conv
+from deepprompt_ros.execution.commands import LoopSetup
 from deepprompt_ros.ros.control_process import ControlProcess
-from deepprompt_ros.ros.loop_io import LoopIO, TrajectorySerializer
+from deepprompt_ros.ros.fastpath.service_thread import ServiceThread
+from deepprompt_ros.ros.loop_io import LoopIO
 from deepprompt_ros.execution.controller import ExecutionController, ExecutionGoal
 from deepprompt_ros.execution.stream_loop import StreamLoop
 from deepprompt_ros.ros.fastpath import realtime
 
-__all__ = ["PrimitiveServer", "TrajectorySerializer", "main"]
+__all__ = ["PrimitiveServer", "main"]
 
 
 class PrimitiveServer(Node):
@@ -103,8 +102,8 @@ class PrimitiveServer(Node):
             # the loop in a child process with its own interpreter (ros.control_process), started
             # now so that its start-up overlaps the loading of the primitives; topic names resolved
             # here so that this node's namespace and remappings apply
-            self.loop = ControlProcess(dict(
-                limits=self.limits, dt=1.0 / rate, cfg=cfg, names=self.names,
+            self.loop = ControlProcess(LoopSetup(
+                limits=self.limits, dt=1.0 / rate, config=cfg, joint_names=tuple(self.names),
                 command_topic=self.resolve_topic_name(cfg.command_topic) if cfg.command_topic else "",
                 trajectory_topic=self.resolve_topic_name(topic) if cfg.controller else "",
                 joint_states_topic=self.resolve_topic_name(cfg.joint_states_topic),
@@ -117,9 +116,7 @@ class PrimitiveServer(Node):
             raise
         self.core = PrimitiveServerCore(prims, cfg, self.limits)
         if self._in_process:
-            # the loop's publishers and joint_states reader on this node (see ros.loop_io): joint_states
-            # are taken by the control thread from a subscription of a helper node that no executor
-            # spins (no per-message executor dispatch at 1 kHz)
+            # the loop's publishers and joint_states reader on this node (see ros.loop_io)
             self._io = LoopIO(self, self.names, self.limits, cfg, cfg.command_topic,
                               topic if cfg.controller else "", cfg.joint_states_topic)
             self.loop = StreamLoop(ExecutionController(self.limits, 1.0 / rate, cfg), cfg, self._io.publish_command,
@@ -137,21 +134,18 @@ class PrimitiveServer(Node):
                          for name in ("condition", "blend", "sample", "list_primitives", "set_phase_rate")}
         # time from a request's reception by DDS to its handling (any service), latest 4096
         self._queued: collections.deque = collections.deque(maxlen=4096)
-        # The services live on a helper node that no executor spins; one thread (_serve) waits on
-        # their five handles, takes a request, answers it and sends the response. The node's
-        # multi-threaded executor (action, parameters) cost ~1 ms more CPU per call in Python on a loaded
-        # 2-core machine (a wait set rebuilt over every entity of the node, a hand-over to a pool
-        # thread). Names stay ~/<service> of this node.
-        self._srv_node = rclpy.create_node(f"{self.get_name()}_services", namespace=self.get_namespace(),
-                                           context=self.context, start_parameter_services=False)
-        base = self.get_fully_qualified_name().rstrip("/")
-        self._srv_list = [self._srv_node.create_service(srv, f"{base}/{name}", self._guard(name, fn))
-                          for srv, name, fn in ((Condition, "condition", self._condition), (Blend, "blend", self._blend),
-                                                (Sample, "sample", self._sample),
-                                                (ListPrimitives, "list_primitives", self._list),
-                                                (SetPhaseRate, "set_phase_rate", self._set_rate))]
-        self._srv_wake = GuardCondition(None, None, context=self.context)
-        self._srv_stop = threading.Event()
+        # the five services: answered one at a time, by a thread of their own (fast path) or by the
+        # executor in one mutually exclusive callback group (plain rclpy)
+        if cfg.fast_path:
+            self._srv_thread = ServiceThread(self, "services", on_queued=self._queued.append)
+            create_service = self._srv_thread.create_service
+        else:
+            self._srv_thread = None
+            create_service = functools.partial(self.create_service, callback_group=MutuallyExclusiveCallbackGroup())
+        for srv, name, fn in ((Condition, "condition", self._condition), (Blend, "blend", self._blend),
+                              (Sample, "sample", self._sample), (ListPrimitives, "list_primitives", self._list),
+                              (SetPhaseRate, "set_phase_rate", self._set_rate)):
+            create_service(srv, f"~/{name}", self._guard(name, fn))
         self._action = ActionServer(self, Execute, "~/execute", self._execute, callback_group=ReentrantCallbackGroup(),
                                     goal_callback=lambda goal: GoalResponse.ACCEPT,
                                     cancel_callback=lambda goal: CancelResponse.ACCEPT)
@@ -162,8 +156,8 @@ class PrimitiveServer(Node):
             self.loop.start(threaded=cfg.loop_mode == "thread")
             if cfg.loop_mode == "thread":
                 self.loop.started.wait(2.0)  # its priority has been set (or refused)
-        self._srv_thread = threading.Thread(target=self._serve, name="services", daemon=True)
-        self._srv_thread.start()
+        if self._srv_thread is not None:
+            self._srv_thread.start()
         if self._in_process and self.loop.priority_error:
             log.warn(self.loop.priority_error)
         where = "in this process" if self._in_process else f"in child process {self.loop.pid}"
@@ -335,48 +329,12 @@ class PrimitiveServer(Node):
             self.get_logger().warn(f"execute: could not set the goal state: {exc}")
         return result
 
-    def _serve(self) -> None:
-        """Service thread: wait on the service handles, answer each request in turn."""
-        realtime.name_os_thread("services")
-        services, wake, ctx = self._srv_list, self._srv_wake, self.context
-        wait_set = _rclpy.WaitSet(0, 1, 0, 0, len(services), 0, ctx.handle)  # 1 guard, n services
-        while not self._srv_stop.is_set() and ctx.ok():
-            try:
-                with contextlib.ExitStack() as stack:
-                    for entity in (*services, wake):
-                        stack.enter_context(entity.handle)
-                    stack.enter_context(ctx.handle)
-                    wait_set.clear_entities()
-                    for srv in services:
-                        wait_set.add_service(srv.handle)
-                    wait_set.add_guard_condition(wake.handle)
-                    wait_set.wait(-1)
-                    ready = wait_set.get_ready_entities("service")
-            except (InvalidHandle, _rclpy.RCLError):  # shutting down
-                return
-            for srv in services:
-                if srv.handle.pointer not in ready:
-                    continue
-                try:
-                    with srv.handle:
-                        request, header = srv.handle.service_take_request(srv.srv_type.Request)
-                    if header is None:
-                        continue
-                    if header.received_timestamp:  # DDS reception -> taken here
-                        self._queued.append(max(time.time_ns() - header.received_timestamp, 0) * 1e-9)
-                    srv.send_response(srv.callback(request, srv.srv_type.Response()), header)
-                except Exception as exc:  # e.g. the client went away; the thread keeps serving
-                    self.get_logger().warn(f"service {srv.srv_name}: {type(exc).__name__}: {exc}",
-                                           throttle_duration_sec=1.0)
-
     def shutdown(self) -> None:
         if self._handled["condition"]:
             self.get_logger().info(self.handling_summary())
-        self._srv_stop.set()
-        self._srv_wake.trigger()
-        self._srv_thread.join(2.0)
+        if self._srv_thread is not None:
+            self._srv_thread.stop(2.0)
         self.loop.shutdown()
-        self._srv_node.destroy_node()
         if self._io is not None:
             self._io.destroy()
 

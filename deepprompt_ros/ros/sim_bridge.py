@@ -52,7 +52,6 @@ from __future__ import annotations
 import concurrent.futures
 import gc
 import queue
-import struct
 import sys
 import threading
 import time
@@ -60,14 +59,12 @@ from typing import Any, Callable
 
 import numpy as np
 import rclpy
-from builtin_interfaces.msg import Time
 from deepprompt_msgs.msg import ResultCode
 from deepprompt_msgs.srv import SpawnObject
 from geometry_msgs.msg import PointStamped, PoseStamped
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.serialization import deserialize_message, serialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, JointState
 from std_msgs.msg import String
@@ -75,127 +72,13 @@ from std_srvs.srv import SetBool, Trigger
 
 from deepprompt_ros.common.params import ConfigError
 from deepprompt_ros.ros import conversions as conv
+from deepprompt_ros.ros.fastpath import wire
 from deepprompt_ros.ros.parameters import declare_config
 from deepprompt_ros.sim.bridge_config import ObjectConfig, SimBridgeConfig
 from deepprompt_ros.sim.camera import CameraPose
 from deepprompt_ros.sim.simulation import Simulation
 
 __all__ = ["SimBridge", "main"]
-
-
-# ------------------------------------------------------------------------------------------------
-# serialized messages (CDR, little endian: 4-byte encapsulation header, then the fields aligned to
-# their size relative to the end of that header; a sequence is a uint32 count then its elements)
-# ------------------------------------------------------------------------------------------------
-_CDR_LE = b"\x00\x01"  # encapsulation kind CDR_LE
-_STAMP = struct.Struct("<iI")  # builtin_interfaces/Time: int32 sec, uint32 nanosec
-_COUNT = struct.Struct("<I")
-
-
-def _align(offset: int, size: int) -> int:
-    """``offset`` (in the whole buffer) rounded up to a multiple of ``size`` after the 4-byte header."""
-    return offset + (-(offset - 4)) % size
-
-
-class ClockSerializer:
-    """``rosgraph_msgs/Clock`` bytes for a stamp (a template with the time patched in)."""
-
-    def __init__(self):
-        data = serialize_message(Clock(clock=Time(sec=0x5A3C2E1F, nanosec=0x2B4D6F13)))
-        self._buf = bytearray(data)
-        self._stamp = data.find(_STAMP.pack(0x5A3C2E1F, 0x2B4D6F13))
-        if data[:2] != _CDR_LE or self._stamp < 0:
-            raise ValueError("Clock serialization is not little-endian CDR")
-
-    def __call__(self, stamp_ns: int) -> bytes:
-        _STAMP.pack_into(self._buf, self._stamp, *divmod(stamp_ns, 1_000_000_000))
-        return bytes(self._buf)
-
-
-class CommandReader:
-    """Serialized ``sensor_msgs/JointState`` joint command -> positions and velocities in the
-    robot's joint order.
-
-    The first message of a joint-name layout is deserialized and validated (names exactly the
-    robot's joints, in any order; consistent array lengths); its bytes from the frame id to the
-    end of the names are kept. A later message whose bytes agree there is read in place: only the
-    counts and the numbers after the names are decoded (a streamer sends the same names every
-    tick). Positions and velocities are checked against the limits by the simulation.
-
-    Parameters
-    ----------
-    names : sequence of str
-        The robot's joints, in its order.
-    joints_text : str
-        The joints for error messages.
-    """
-
-    def __init__(self, names, joints_text: str):
-        self._names = tuple(names)
-        self._joints_text = joints_text
-        self._key = b""        # bytes 12 .. end of the names of the last valid layout
-        self._order = None     # index array: robot joint k is message joint order[k]; None = same order
-
-    def __call__(self, data: bytes) -> tuple[np.ndarray, np.ndarray | None]:
-        """Returns (q, qd): arrays (n,), qd None when the message has no velocities.
-
-        Raises
-        ------
-        ValueError
-            Not a JointState, names that are not exactly the robot's joints, or array lengths that
-            are neither the number of names nor (velocity) 0.
-        """
-        key = self._key
-        if key and data.startswith(key, 12):
-            try:
-                return self._numbers(data, 12 + len(key))
-            except (ValueError, struct.error):
-                pass  # unexpected counts: the full path says what is wrong
-        return self._validate(data)
-
-    def _numbers(self, data: bytes, offset: int):
-        n = len(self._names)
-        out = []
-        for field in range(2):  # position, velocity (effort is ignored)
-            offset = _align(offset, 4)
-            (count,) = _COUNT.unpack_from(data, offset)
-            offset += 4
-            if count != n and not (field == 1 and count == 0):
-                raise ValueError("unexpected count")
-            if count:
-                offset = _align(offset, 8)
-                values = np.frombuffer(data, dtype="<f8", count=count, offset=offset)
-                offset += 8 * count
-                out.append(values if self._order is None else values[self._order])
-            else:
-                out.append(None)
-        return out[0], out[1]
-
-    def _validate(self, data: bytes):
-        try:
-            msg = deserialize_message(data, JointState)
-        except Exception as exc:
-            raise ValueError(f"not a sensor_msgs/JointState ({type(exc).__name__}: {exc})") from None
-        js = conv.joint_state_to_arrays(msg)
-        if len(js.names) != len(self._names) or set(js.names) != set(self._names):
-            raise ValueError(f"joint command names {list(js.names)}; expected exactly the "
-                             f"{len(self._names)} joints {self._joints_text} (any order)")
-        order = np.array([js.names.index(w) for w in self._names])
-        # bytes from the frame id to the end of the names: the layout key
-        offset = 12
-        (length,) = _COUNT.unpack_from(data, offset)
-        offset += 4 + length
-        offset = _align(offset, 4)
-        (count,) = _COUNT.unpack_from(data, offset)
-        offset += 4
-        for _ in range(count):
-            offset = _align(offset, 4)
-            (length,) = _COUNT.unpack_from(data, offset)
-            offset += 4 + length
-        self._key = bytes(data[12:offset])
-        self._order = None if np.array_equal(order, np.arange(len(order))) else order
-        q = js.position[order]
-        return q, (js.velocity[order] if js.velocity is not None else None)
 
 
 class SimBridge(Node):
@@ -260,7 +143,7 @@ class SimBridge(Node):
                                                namespace=self.get_namespace(), context=self.context)
         self._command_sub = self._command_node.create_subscription(
             JointState, p.command_topic, lambda msg: None, 10, raw=True)
-        self._read_command = CommandReader(self._names, spec.joints_text())
+        self._read_command = wire.CommandReader(self._names, spec.joints_text())
         self.create_subscription(PointStamped, p.guide_topic, self._on_guide, 10)
         self.create_service(SpawnObject, "spawn_object", self._on_spawn)
         self.create_service(SetBool, "set_kinesthetic", self._on_set_kinesthetic)
@@ -307,8 +190,8 @@ class SimBridge(Node):
         dt_obj = 1.0 / p.objects_rate_hz
         next_cam = next_obj = 0.0
         t0_ns = time.time_ns()
-        state_bytes = conv.JointStateSerializer(self._names, effort=True)
-        clock_bytes = ClockSerializer() if self._clock_pub is not None else None
+        state_bytes = wire.JointStateSerializer(self._names, effort=True)
+        clock_bytes = wire.ClockSerializer() if self._clock_pub is not None else None
         js_pub, clock_pub, js_every = self._js_pub, self._clock_pub, self._js_every
         calls = self._calls
         steps = 0
