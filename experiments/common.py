@@ -7,11 +7,11 @@ name when that module exists — it is imported lazily, only when one of its tas
 ==================  ==========================================================================
 task                data
 ==================  ==========================================================================
-``gen3_lite_reach`` :func:`core.reach.reach_demos` on the Kinova Gen3 lite (6 joints), context
-                    ``object`` (3,) — the object position; no images
+``gen3_lite_reach`` :func:`sim.tasks.kinematic_reach.reach_demos` on the Kinova Gen3 lite (6 joints),
+                    context ``object`` (3,) — the object position; no images
 ``wam_reach``       the same reaching demonstrator on the Barrett WAM (7 joints), context ``object``
-``bimodal_sine``    :func:`core.dataset.bimodal_sine` (1 joint, two modes), context ``mode`` (1,)
-``reach``,          :func:`core.tasks.make_task` (PyBullet analogues of the paper's RLBench tasks on
+``bimodal_sine``    :func:`data.synthetic.bimodal_sine` (1 joint, two modes), context ``mode`` (1,)
+``reach``,          :func:`sim.tasks.registry.make_task` (PyBullet analogues of the paper's RLBench tasks on
 ``close_box``,      the WAM, and the Kinova pick-and-place; contexts and camera images), when
 ``pour``,           ``deepprompt_ros/sim/tasks/registry.py`` exists; generated splits are cached on disk
 ``kinova_pick_place`` (:func:`cached_task_split`)
@@ -130,7 +130,8 @@ def pybullet_tasks_available() -> bool:
 
 def default_tasks(scale: Scale) -> tuple[str, ...]:
     """The task list when none is given: ``scale.recon_tasks`` if set, else the PyBullet tasks (when
-    ``core/tasks.py`` exists) followed by the built-in ``gen3_lite_reach`` and ``bimodal_sine``."""
+    ``deepprompt_ros/sim/tasks/registry.py`` exists) followed by the built-in ``gen3_lite_reach`` and
+    ``bimodal_sine``."""
     if scale.recon_tasks:
         return scale.recon_tasks
     return (PYBULLET_TASKS if pybullet_tasks_available() else ()) + ("gen3_lite_reach", "bimodal_sine")
@@ -249,21 +250,59 @@ def code_parts(patterns: Sequence[str]) -> dict:
 _TASKS: list = []
 
 
+def import_closure(module: str) -> list[pathlib.Path]:
+    """Source files of package module ``module`` and of every package module it imports, directly or
+    through others (imports inside functions and the ``__init__.py`` of each package on the way
+    included, except ``deepprompt_ros/__init__.py``), found by parsing the sources without importing
+    them."""
+    import ast
+
+    def source(name: str) -> pathlib.Path | None:
+        base = ROOT.joinpath(*name.split("."))
+        return next((f for f in (base.with_suffix(".py"), base / "__init__.py") if f.is_file()), None)
+
+    files: dict[str, pathlib.Path] = {}
+    todo = [module]
+    while todo:
+        name = todo.pop()
+        if name in files or not name.startswith("deepprompt_ros"):
+            continue
+        path = source(name)
+        if path is None:  # a name imported from a module, not a module
+            continue
+        files[name] = path
+        if "." in name.rpartition(".")[0]:  # its package's __init__ runs first (the top package's
+            todo.append(name.rpartition(".")[0])  # holds only the lazy export table)
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                todo += [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+                todo += [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+    return sorted(files.values())
+
+
 def _tasks_module():
-    """(``core.tasks``, hash of its source) — the hash taken once, when the module is first imported
-    here: the code that generates the data is the code in memory, even if the file changes later."""
+    """(:mod:`deepprompt_ros.sim.tasks.registry`, digest of the code and robot models that generate
+    its data) — the digest taken once, when the module is first imported here: the code that
+    generates the data is the code in memory, even if the files change later. The digest covers the
+    whole ``sim/tasks`` package, every package module the registry imports, directly or not (the
+    simulation, robot models, IK, geometry, the data format), and the URDF of each task's robot."""
     if not _TASKS:
+        from deepprompt_ros.robots.spec import urdf_path
         from deepprompt_ros.sim.tasks import registry as tasks
 
-        _TASKS.append((tasks, hashlib.sha1(pathlib.Path(tasks.__file__).read_bytes()).hexdigest()[:10]))
+        files = set(import_closure(tasks.__name__)) | set(ROOT.glob("deepprompt_ros/sim/tasks/**/*.py"))
+        files |= {urdf_path(t.robot) for t in tasks.TASKS.values()}
+        _TASKS.append((tasks, file_digest(sorted(files))))
     return _TASKS[0]
 
 
 def cached_task_split(name: str, split: str, n: int | None, quick: bool, seed: int = 0) -> DemoDataset:
-    """``core.tasks.make_task(name, split, n, quick, seed)``, generated once and then read from
-    :func:`data_cache_dir` (the key includes a hash of ``core/tasks.py``, so a changed generator is
-    never read from a stale cache). Each cache entry keeps ``cache_info.json`` (the dataset's source
-    and the generation time, s), so a read entry has the source of the generated one."""
+    """``sim.tasks.registry.make_task(name, split, n, quick, seed)``, generated once and then read from
+    :func:`data_cache_dir` (the key includes the digest of the generating code of
+    :func:`_tasks_module`, so a changed generator is never read from a stale cache). Each cache entry
+    keeps ``cache_info.json`` (the dataset's source and the generation time, s), so a read entry has
+    the source of the generated one."""
     from deepprompt_ros.data.demo_dataset import load_dataset
 
     tasks, digest = _tasks_module()

@@ -324,3 +324,24 @@ def test_builtin_registry_generates_the_train_split():
     ref = make_task("pour", "train", n=1, quick=True, seed=2)
     np.testing.assert_array_equal(ds.demos[0].q, ref.demos[0].q)
     assert ds.context_dims == {"pour": 5}
+
+
+def test_experiment_data_cache_key_covers_the_generating_code():
+    """experiments.common keys its cache of generated task splits by a digest of the code that
+    generates them: the tasks package and everything the registry imports, late imports included."""
+    import pathlib
+    import sys
+
+    root = pathlib.Path(__file__).resolve().parents[1]
+    sys.path.insert(0, str(root))
+    from experiments import common
+
+    files = {f.relative_to(root).as_posix() for f in common.import_closure("deepprompt_ros.sim.tasks.registry")}
+    for need in ("sim/tasks/registry.py", "sim/tasks/reach.py", "sim/tasks/pour.py", "sim/tasks/scene.py",
+                 "sim/tasks/trajectory.py", "sim/tasks/min_jerk.py", "sim/simulation.py", "sim/camera.py",
+                 "robots/ik.py", "robots/geometry.py", "robots/kinematics.py", "robots/spec.py",
+                 "data/demonstration.py", "data/demo_dataset.py"):
+        assert f"deepprompt_ros/{need}" in files, need
+    assert not any(f.startswith(("deepprompt_ros/training", "deepprompt_ros/ros/")) for f in files), files
+    tasks, digest = common._tasks_module()
+    assert tasks is common._tasks_module()[0] and len(digest) == 10
