@@ -14,7 +14,14 @@ do not interfere. Two control modes:
   (:meth:`Simulation.apply_guiding_force`, :meth:`Simulation.guide_towards`) like a human
   demonstrator guides a real arm in gravity-compensation mode.
 
-Units: m, rad, s, N, N·m; quaternions are (x, y, z, w) as in PyBullet and ROS.
+Units: m, rad, s, N, N·m; quaternions are (x, y, z, w) as in PyBullet and ROS (conversions:
+:mod:`deepprompt_ros.robots.geometry`). Camera poses and their matrices:
+:mod:`deepprompt_ros.sim.camera`.
+
+Length: over 400 lines because it is one class, the simulated arm: its position loop, kinesthetic
+torque control, guiding forces, objects and rendering all act on the same PyBullet client, body
+and joint tables inside one :meth:`Simulation.step`, and splitting the class would only spread
+that shared state over several files.
 """
 from __future__ import annotations
 
