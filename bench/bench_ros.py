@@ -74,12 +74,13 @@ def tiny_reach_model(path: pathlib.Path, steps: int = 300) -> pathlib.Path:
     from deepprompt_ros.data.demo_dataset import DemoDataset
     from deepprompt_ros.data.demonstration import Demonstration
     from deepprompt_ros.robots.spec import load_robot
+    from deepprompt_ros.sim.tasks.min_jerk import min_jerk
     from deepprompt_ros.training.loop import TrainConfig, train
 
     spec = load_robot("gen3_lite")
     rng = np.random.default_rng(0)
     x = np.linspace(0, 1, 50)
-    s = 10 * x**3 - 15 * x**4 + 6 * x**5  # minimum-jerk profile
+    s = min_jerk(x)
     a = rng.uniform(-1, 1, (6, 3))
     demos = []
     for i in range(40):
