@@ -17,7 +17,7 @@ Usage::
 
 The command writes ``DIR/train``, ``DIR/val``, ``DIR/test`` (each a dataset folder for
 ``train --data``) and ``DIR/task.json`` (task, seed, sizes, context layout, generation time).
-``python -m deepprompt_ros.training.loop --builtin reach`` generates the full training split in
+``python -m deepprompt_ros.training.cli --builtin reach`` generates the full training split in
 memory (with simulated execution, which takes most of the time); generating once to a folder and
 training with ``--data DIR/train`` avoids repeating that.
 
@@ -36,11 +36,11 @@ task                   robot      context (dim)       images  sizes train / val 
 The 7-DoF arm is the Barrett WAM of ``load_robot("wam")`` (the paper's own 7-DoF robot; its URDF
 of simple shapes renders far faster than example-robot-data's Panda meshes). Images are 64×64 RGB
 (``image_size``) rendered with PyBullet's tiny renderer of the scene at the start of the
-demonstration: arm in its start configuration, objects placed per the context. WAM tasks use five cameras (front, left shoulder, right shoulder, overhead, wrist — the
-RLBench set-up); the Kinova task uses three images: the scene from the front camera, then the same
-view and a side view with a yellow marker disc under the designated object (the paper: "a
-picture of the object to be moved ... three additional pictures that contain markers on the
-desired object").
+demonstration: arm in its start configuration, objects placed per the context. WAM tasks use five
+cameras (front, left shoulder, right shoulder, overhead, wrist — the RLBench set-up); the Kinova
+task uses three images: the scene from the front camera, then the same view and a side view with a
+yellow marker disc under the designated object (the paper: "a picture of the object to be moved
+... three additional pictures that contain markers on the desired object").
 
 Modules
 -------

@@ -7,8 +7,8 @@ with the cube), a 0.3–0.6 s hold (gripper closing), lift 6–12 cm. Odd-indexe
 ``place``: starting with the cube held above a random pick location, carry it above the square,
 lower it onto the square, hold, retreat 6–10 cm up. Context ``object_px`` = normalized pixel
 position (u right, v down, in [0, 1]) in the front camera's image of the subtask's goal (the
-cube for pick, the square for place; :func:`~deepprompt_ros.sim.camera.project_point`, checked visible by ray casts), and
-``subtask`` = one-hot (pick, place).
+cube for pick, the square for place; :func:`~deepprompt_ros.sim.camera.project_point`, checked
+visible by ray casts), and ``subtask`` = one-hot (pick, place).
 """
 from __future__ import annotations
 

@@ -21,7 +21,7 @@ def quintic_hermite(u):
 
     The minimum-jerk curve from (q₀, v₀, 0) to (q₁, v₁, 0) over a segment of duration h is
     q(u) = H₀ q₀ + h H₁ v₀ + h H₂ v₁ + H₃ q₁ with H₀ = 1 − 10u³ + 15u⁴ − 6u⁵,
-    H₁ = u − 6u³ + 8u⁴ − 3u⁵, H₂ = −4u³ + 7u⁴ − 3u⁵ and H₃ = :func:`min_jerk` (u) = 1 − H₀.
+    H₁ = u − 6u³ + 8u⁴ − 3u⁵, H₂ = −4u³ + 7u⁴ − 3u⁵ and H₃ = 1 − H₀ = :func:`min_jerk` (u).
 
     Returns
     -------

@@ -17,9 +17,10 @@ class ViaTrajectory:
     Segment k joins (q_k, v_k, 0) at t_k to (q_{k+1}, v_{k+1}, 0) at t_{k+1}: the minimum-jerk
     curve between these boundary states is the quintic Hermite interpolant
     q(u) = H₀(u) q_k + h H₁(u) v_k + h H₂(u) v_{k+1} + H₃(u) q_{k+1}, u = (t − t_k)/h (Flash & Hogan
-    1985; the basis: :func:`~deepprompt_ros.sim.tasks.min_jerk.quintic_hermite`). Velocities: 0 at both ends and wherever a joint's motion reverses or
-    stops (a repeated via-configuration is a hold); elsewhere the Fritsch–Butland weighted
-    harmonic mean of the neighbouring slopes, times ``flow`` in [0, 1] (0 = stop at every via).
+    1985; the basis: :func:`~deepprompt_ros.sim.tasks.min_jerk.quintic_hermite`). Velocities: 0 at
+    both ends and wherever a joint's motion reverses or stops (a repeated via-configuration is a
+    hold); elsewhere the Fritsch–Butland weighted harmonic mean of the neighbouring slopes, times
+    ``flow`` in [0, 1] (0 = stop at every via).
 
     Parameters
     ----------
