@@ -53,7 +53,6 @@ import numpy as np  # noqa: E402
 import rclpy
 from deepprompt_msgs.action import Execute
 from deepprompt_msgs.srv import Blend, Condition, ListPrimitives, Sample, SetPhaseRate
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
@@ -61,7 +60,8 @@ from rclpy.node import Node
 
 from deepprompt_ros import paths
 from deepprompt_ros.common.params import ConfigError
-from deepprompt_ros.server.config import PARAMETERS, ServerConfig, robot_limits
+from deepprompt_ros.ros.parameters import declare_config
+from deepprompt_ros.server.config import ServerConfig, robot_limits
 from deepprompt_ros.server.primitives_file import load_primitives, read_primitives_file
 from deepprompt_ros.server.requests import (BlendRequest, Code, ConditionRequest, ExecuteRequest, RequestError,
                                             SampleRequest)
@@ -167,26 +167,8 @@ class PrimitiveServer(Node):
 
     # ------------------------------------------------------------------ start-up
     def _read_parameters(self) -> ServerConfig:
-        values, errors = {}, []
-        for p in PARAMETERS:
-            desc = ParameterDescriptor(description=p.description, read_only=True, dynamic_typing=True)
-            if p.min is not None and p.type == "double":
-                desc.floating_point_range = [FloatingPointRange(from_value=float(p.min), to_value=float(p.max))]
-            elif p.min is not None and p.type == "int":
-                desc.integer_range = [IntegerRange(from_value=int(p.min), to_value=int(p.max), step=1)]
-            if p.choices:
-                desc.additional_constraints = "one of: " + ", ".join(p.choices)
-            try:
-                values[p.name] = self.declare_parameter(p.name, p.default, desc).value
-            except Exception:  # rclpy refuses an out-of-range override: read it without the range
-                plain = ParameterDescriptor(description=p.description, read_only=True, dynamic_typing=True)
-                try:  # ServerConfig then explains every invalid value at once
-                    values[p.name] = self.declare_parameter(p.name, p.default, plain).value
-                except Exception as exc:
-                    errors.append(f"{p.name}: {exc}")
-        if errors:
-            raise ConfigError("invalid parameters:\n  " + "\n  ".join(errors))
-        return ServerConfig.from_mapping(values)
+        """Declare the parameters (ros.parameters); ConfigError names every invalid one."""
+        return declare_config(self, ServerConfig)
 
     def _load_primitives(self, cfg: ServerConfig) -> dict:
         log = self.get_logger()
