@@ -20,7 +20,7 @@ import sys
 
 PACKAGE = "deepprompt_ros"
 
-__all__ = ["PACKAGE", "share_dirs", "source_dir", "data_dirs", "config_dir", "models_dir", "find_data_file"]
+__all__ = ["PACKAGE", "share_dirs", "source_dir", "data_dirs", "find_data_file"]
 
 
 def _prefixes() -> list[pathlib.Path]:
@@ -63,26 +63,6 @@ def data_dirs(kind: str) -> list[pathlib.Path]:
     if src is not None:
         dirs.append(src / kind)
     return [d for d in dirs if d.is_dir()]
-
-
-def _first(kind: str) -> pathlib.Path:
-    dirs = data_dirs(kind)
-    if not dirs:
-        raise FileNotFoundError(
-            f"no '{kind}' folder of {PACKAGE} found: looked in share/{PACKAGE}/{kind} under "
-            f"{[str(p) for p in _prefixes()]} and in the source tree; install the package "
-            "(make setup) or set the path explicitly")
-    return dirs[0]
-
-
-def config_dir() -> pathlib.Path:
-    """The first existing ``config/`` folder (installed share first, then the source tree)."""
-    return _first("config")
-
-
-def models_dir() -> pathlib.Path:
-    """The first existing ``models/`` folder (installed share first, then the source tree)."""
-    return _first("models")
 
 
 def find_data_file(kind: str, name: str | os.PathLike) -> pathlib.Path:
