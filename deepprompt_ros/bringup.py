@@ -81,17 +81,25 @@ class NodeDescription:
         """The Python module run by the executable."""
         return EXECUTABLES[self.executable]
 
+    @property
+    def renamed(self) -> bool:
+        """Whether the node needs a node-name remap: each executable names its node after itself, and
+        a remap is passed only for another name (it applies to every node of the process)."""
+        return self.name != self.executable
+
     def launch_kwargs(self) -> dict[str, Any]:
         """Keyword arguments of ``launch_ros.actions.Node`` for this node."""
-        return dict(package=self.package, executable=self.executable, name=self.name,
-                    parameters=[*self.parameter_files] + ([dict(self.parameters)] if self.parameters else []),
+        kw = dict(package=self.package, executable=self.executable)
+        if self.renamed:
+            kw["name"] = self.name
+        return dict(kw, parameters=[*self.parameter_files] + ([dict(self.parameters)] if self.parameters else []),
                     remappings=list(self.remappings), arguments=list(self.arguments),
                     additional_env=dict(self.environment), output="screen")
 
     def ros_arguments(self) -> list[str]:
         """``--ros-args ...`` of the same node as :meth:`launch_kwargs` gives ``launch_ros``."""
         out = ["--ros-args"]
-        if self.name != self.executable:  # the executables' own node names are theirs
+        if self.renamed:
             out += ["-r", f"__node:={self.name}"]
         for f in self.parameter_files:
             out += ["--params-file", f]
@@ -114,14 +122,12 @@ def _config(name: str) -> str:
 # ------------------------------------------------------------------------------------------------
 # launch arguments
 # ------------------------------------------------------------------------------------------------
-_ROBOT = "robot of the simulation and of the server: gen3_lite, wam or a fixed-base arm of example-robot-data"
-
-
 @dataclasses.dataclass(frozen=True)
 class DemoArguments:
     """Arguments of ``demo.launch.py`` and ``make run``."""
 
-    robot: str = param("gen3_lite", _ROBOT)
+    robot: str = param("gen3_lite", "robot of the simulation and of the server: gen3_lite, wam or a fixed-base "
+                       "arm of example-robot-data")
     real_time_factor: float = param(1.0, "sim_bridge real_time_factor: simulated seconds per wall-clock second",
                                     min=0.0, max=100.0)
     stale_timeout: float = param(1.0, "primitive_server stale_timeout for the simulated robot (the server's "

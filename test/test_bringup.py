@@ -124,7 +124,8 @@ def test_command_line_carries_the_same_node():
     kw = node.launch_kwargs()
     assert kw["name"] == "arm_sim" and kw["parameters"][:2] == ["/a.yaml", "/b.yaml"]
     assert kw["parameters"][2]["object_names"] == ("a", "b") and kw["remappings"] == [("joint_states", "/arm/joint_states")]
-    assert "__node:=" not in " ".join(bringup.nodes("demo")[0].command("/py"))  # the executable's own name
+    for node in bringup.nodes("demo"):  # the executables' own node names: no remap
+        assert "__node:=" not in " ".join(node.command("/py")) and "name" not in node.launch_kwargs()
 
 
 # ------------------------------------------------------------------------------------------------
