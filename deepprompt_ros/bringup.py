@@ -92,7 +92,8 @@ class NodeDescription:
         kw = dict(package=self.package, executable=self.executable)
         if self.renamed:
             kw["name"] = self.name
-        return dict(kw, parameters=[*self.parameter_files] + ([dict(self.parameters)] if self.parameters else []),
+        values = {k: list(v) if isinstance(v, tuple) else v for k, v in self.parameters.items()}  # YAML lists
+        return dict(kw, parameters=[*self.parameter_files] + ([values] if values else []),
                     remappings=list(self.remappings), arguments=list(self.arguments),
                     additional_env=dict(self.environment), output="screen")
 

@@ -123,7 +123,7 @@ def test_command_line_carries_the_same_node():
     assert cmd[-2:] == ["-r", "joint_states:=/arm/joint_states"]
     kw = node.launch_kwargs()
     assert kw["name"] == "arm_sim" and kw["parameters"][:2] == ["/a.yaml", "/b.yaml"]
-    assert kw["parameters"][2]["object_names"] == ("a", "b") and kw["remappings"] == [("joint_states", "/arm/joint_states")]
+    assert kw["parameters"][2]["object_names"] == ["a", "b"] and kw["remappings"] == [("joint_states", "/arm/joint_states")]
     for node in bringup.nodes("demo"):  # the executables' own node names: no remap
         assert "__node:=" not in " ".join(node.command("/py")) and "name" not in node.launch_kwargs()
 
