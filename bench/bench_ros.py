@@ -1,14 +1,21 @@
 """Benchmark of primitive_server over real DDS, every party in its own process.
 
-    python bench/bench_ros.py            # full: 40 s stream, >= 1000 Condition calls, 30 random executions
-    python bench/bench_ros.py --quick    # smoke run: 2 s stream, 20 calls, limits checked on that stream
+    python bench/bench_ros.py            # full: per mode 40 s stream, >= 1000 Condition calls, 30 random executions
+    python bench/bench_ros.py --quick    # smoke run: per mode 2 s stream, 20 calls, limits checked on that stream
     python bench/bench_ros.py --sim-param joint_states_rate_hz:=250 --param gil_switch_interval:=0.0005
 
 Processes: sim_bridge (PyBullet Gen3 lite, joint_states at 1 kHz), primitive_server (and, with
 its default ``loop_process: true``, its control-loop child process), a stream subscriber, a
 Condition client, and this orchestrator (action client).
 
-Metrics (last line: space-separated name=value pairs):
+Both modes of the server are measured in one run, one after the other against the same simulated
+robot: ``fast_path: true`` (the default; the figures below without suffix) and ``fast_path: false``
+(plain rclpy; the same figures with the suffix ``_plain``). ``<figure>_fast_over_plain`` is the
+ratio of the two for the service round trip and the stream's period error (< 1: the fast path is
+better), so the fast path has to keep earning its place.
+
+Metrics (last line: space-separated name=value pairs; the fast path's headline figures, the plain
+ones and the ratios):
 
 * ``srv_p50_ms``, ``srv_p99_ms`` -- Condition round trip (request with 5 via-points and the
   'object' context, preview 100 points) measured by the client process, which calls every 40 ms
@@ -32,7 +39,7 @@ Metrics (last line: space-separated name=value pairs):
 * ``stream_missed`` -- intervals longer than 1.5 dt (each is a command that arrived at least half a
   period late or not at all); ``stream_lost`` -- gaps in the commands' header.stamp (the nominal
   time of the tick, k dt): commands lost on the way plus the periods the server skipped after a tick
-  that started more than a period late (its deadlines then restart from now, see ros.stream_loop);
+  that started more than a period late (its deadlines then restart from now, see execution.stream_loop);
 * ``server_period_p99_err_ms``, ``server_missed`` -- the same two figures from the server's own
   publication instants (its log): pacing alone, without transport and subscriber scheduling;
 * ``cpu_<process>_pct`` -- CPU time of each process (user + system, /proc) per wall-clock second
@@ -42,7 +49,7 @@ Metrics (last line: space-separated name=value pairs):
   longest (each holds the interpreter lock);
 * ``limit_violations`` -- over random executions in the sim (random via-points, durations,
   preemptions, cancels, phase-rate changes): commanded samples violating a limit
-  (core.streaming.check_limits on the joint_command stream: positions, velocities, and the
+  (execution.limits.check_limits on the joint_command stream: positions, velocities, and the
   finite-difference accelerations / jerks of consecutive commands; segments split at lost
   messages) plus measured joint_states samples outside the URDF position limits by > 1e-4 rad.
 """
@@ -448,81 +455,44 @@ def limit_check(data, dt, limits):
     return viol, js_viol, worst
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--quick", action="store_true", help="a few seconds instead of ~2 minutes")
-    ap.add_argument("--loop-mode", default="thread", choices=("thread", "timer"))
-    ap.add_argument("--param", action="append", default=[], help="extra primitive_server parameter name:=value")
-    ap.add_argument("--sim-param", action="append", default=[],
-                    help="extra sim_bridge parameter name:=value (e.g. joint_states_rate_hz:=250)")
-    ap.add_argument("--model", help="model file to serve as 'reach' (6 Gen3 lite joints, context 'object'); "
-                    "default: models/gen3_lite_reach.safetensors, else a tiny model trained here")
-    ap.add_argument("--subscriber-priority", type=int, default=50, metavar="P",
-                    help="SCHED_FIFO priority of the stream subscriber processes, as a real-time consumer of the "
-                    "stream runs (default 50, the server's realtime_priority default; 0 = normal scheduling; "
-                    "refused without CAP_SYS_NICE -> normal, said in the output)")
-    ap.add_argument("--service", default="condition", choices=("condition", "list_primitives"),
-                    help="what the client process calls (default condition; list_primitives: a near-empty "
-                    "handler, i.e. the transport's share of srv_* under the same load)")
-    ap.add_argument("--reference-loop", action="store_true",
-                    help="also run, during the stream, a bare 1 kHz Python loop (no ROS, no work) at the "
-                    "subscribers' SCHED_FIFO priority in a process of its own: ref_loop_* say what the machine's "
-                    "scheduler allows a real-time loop under the same load")
-    ap.add_argument("--priority", type=int, default=0, help=argparse.SUPPRESS)
-    ap.add_argument("--role", choices=("subscriber", "client", "reference_loop"), help=argparse.SUPPRESS)
-    ap.add_argument("--out", help=argparse.SUPPRESS)
-    ap.add_argument("--seconds", type=float, default=0.0, help=argparse.SUPPRESS)
-    ap.add_argument("--calls", type=int, default=0, help=argparse.SUPPRESS)
-    ap.add_argument("--gate", help=argparse.SUPPRESS)
-    ap.add_argument("--states", action="store_true", help=argparse.SUPPRESS)
-    args = ap.parse_args(argv)
-    if args.role:  # SIGINT (the orchestrator's stop) ends a role even if it was started with SIGINT ignored
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-    if args.role == "subscriber":
-        role_subscriber(args.out, args.gate, args.states, args.priority)
-        return 0
-    if args.role == "reference_loop":
-        role_reference_loop(args.out, args.gate, args.priority, 1e-3)
-        return 0
-    if args.role == "client":
-        role_client(args.out, args.gate, args.seconds, args.calls, args.service)
-        return 0
+#: the figures printed for both modes and compared as fast path / plain rclpy (last line)
+COMPARED = ("srv_p50_ms", "srv_p99_ms", "stream_period_p99_err_ms")
 
-    from deepprompt_ros.robots.spec import load_robot
-    from deepprompt_ros.server.config import ServerConfig, robot_limits
-    from deepprompt_ros.ros.testing import NodeProcess, isolated_ros_env
 
-    # SIGTERM (kill, timeout) ends the run like an error: the finally below stops every process started
-    # (rclpy, initialized later by the Orchestrator, calls this handler from its own)
-    signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
+def measure(args, env, tmp: pathlib.Path, prim_file: pathlib.Path, spec, limits, fast_path: bool,
+            procs: list) -> dict:
+    """One primitive_server (``fast_path`` as given) measured against the running sim_bridge: phase 1
+    (one long execution with the stream subscriber and the Condition client, each in its own process)
+    and phase 2 (random executions, limits). Every process started here is appended to ``procs``
+    and stopped before returning."""
+    from deepprompt_ros.ros.testing import NodeProcess
 
-    load_before = os.getloadavg()[0]  # other work on the machine (this benchmark adds ~1 when it runs)
-    stream_s, calls, n_exec = (2.0, 20, 0) if args.quick else (40.0, 1000, 30)
-    tmp = pathlib.Path(tempfile.mkdtemp(prefix="bench_ros_"))
-    env = isolated_ros_env(tmp / "log")
-    spec = load_robot("gen3_lite")
-    limits = robot_limits(spec, ServerConfig())
     dt = 1.0 / spec.control_rate_hz
-    procs = []
-    t_start = time.monotonic()
+    stream_s, calls, n_exec = (2.0, 20, 0) if args.quick else (40.0, 1000, 30)
+    mode = "fast" if fast_path else "plain"
+    tmp = tmp / mode
+    tmp.mkdir()
+    mine: list = []
+
+    def started(p):
+        procs.append(p)
+        mine.append(p)
+        return p
+
+    orch = None
     try:
-        prim_file = primitives_file(tmp, args.model, 100 if args.quick else 300)
-        sim_ros_args = [a for p in args.sim_param for a in ("-p", p)]
-        procs.append(NodeProcess.start_module("deepprompt_ros.ros.sim_bridge", env, params={
-            "camera.enabled": False, "publish_clock": False}, ros_args=sim_ros_args))
         # stale_timeout 1 s: on a loaded machine the Python sim pauses; this benchmark measures the stream
         ros_args = ["-p", f"primitives_file:={prim_file}", "-p", f"loop_mode:={args.loop_mode}",
-                    "-p", "stale_timeout:=1.0"]
+                    "-p", "stale_timeout:=1.0", "-p", f"fast_path:={str(fast_path).lower()}"]
         for p in args.param:
             ros_args += ["-p", p]
-        server = NodeProcess.start_module("deepprompt_ros.ros.primitive_server", env, ros_args=ros_args)
-        procs.append(server)
+        server = started(NodeProcess.start_module("deepprompt_ros.ros.primitive_server", env, ros_args=ros_args,
+                                                  name=f"primitive_server_{mode}"))
+
         def start_role(role, out, gate, extra=()):
             cmd = [sys.executable, str(pathlib.Path(__file__).resolve()), "--role", role, "--out", str(out),
                    "--gate", str(gate), *extra]
-            p = NodeProcess(cmd, env, tmp / f"{pathlib.Path(gate).name}.log")
-            procs.append(p)
-            return p
+            return started(NodeProcess(cmd, env, tmp / f"{pathlib.Path(gate).name}.log"))
 
         def wait_ready(gate):
             _wait_file(pathlib.Path(str(gate) + ".ready"))
@@ -530,7 +500,7 @@ def main(argv=None) -> int:
         def go(gate, what="go"):
             pathlib.Path(f"{gate}.{what}").write_text(what)
 
-        # measuring processes start now, in parallel with the nodes
+        # measuring processes start now, in parallel with the server
         g_sub, g_cli, g_sub2 = tmp / "stream", tmp / "client", tmp / "limits"
         # quick: no random executions; the limits are checked on the phase-1 stream (+ joint states)
         prio = ["--priority", str(args.subscriber_priority)]
@@ -635,29 +605,108 @@ def main(argv=None) -> int:
             viol, js_viol, worst = limit_check(stream, dt, limits)
         metrics.update(limit_violations=viol + js_viol, limit_violations_measured=js_viol,
                        executions=n_exec, **{f"worst_{k}": v for k, v in worst.items()})
-        orch.close()
         metrics["exec_codes"] = json.dumps(codes, sort_keys=True).replace(" ", "")
     finally:
-        for p in procs:  # all at once, then wait for each (SIGKILL after 5 s)
-            if p.running():
-                try:
-                    os.killpg(p.pid, signal.SIGINT)
-                except ProcessLookupError:
-                    pass
-        for p in procs:
-            p.stop()
+        return metrics
+    finally:
+        if orch is not None:
+            orch.close()
+        _stop_all(mine)
+
+
+def _stop_all(procs) -> None:
+    """SIGINT every running process of ``procs`` at once, then wait for each (SIGKILL after 5 s)."""
+    for p in procs:
+        if p.running():
+            try:
+                os.killpg(p.pid, signal.SIGINT)
+            except ProcessLookupError:
+                pass
+    for p in procs:
+        p.stop()
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="a few seconds instead of a few minutes")
+    ap.add_argument("--loop-mode", default="thread", choices=("thread", "timer"))
+    ap.add_argument("--param", action="append", default=[], help="extra primitive_server parameter name:=value")
+    ap.add_argument("--sim-param", action="append", default=[],
+                    help="extra sim_bridge parameter name:=value (e.g. joint_states_rate_hz:=250)")
+    ap.add_argument("--model", help="model file to serve as 'reach' (6 Gen3 lite joints, context 'object'); "
+                    "default: models/gen3_lite_reach.safetensors, else a tiny model trained here")
+    ap.add_argument("--subscriber-priority", type=int, default=50, metavar="P",
+                    help="SCHED_FIFO priority of the stream subscriber processes, as a real-time consumer of the "
+                    "stream runs (default 50, the server's realtime_priority default; 0 = normal scheduling; "
+                    "refused without CAP_SYS_NICE -> normal, said in the output)")
+    ap.add_argument("--service", default="condition", choices=("condition", "list_primitives"),
+                    help="what the client process calls (default condition; list_primitives: a near-empty "
+                    "handler, i.e. the transport's share of srv_* under the same load)")
+    ap.add_argument("--reference-loop", action="store_true",
+                    help="also run, during the stream, a bare 1 kHz Python loop (no ROS, no work) at the "
+                    "subscribers' SCHED_FIFO priority in a process of its own: ref_loop_* say what the machine's "
+                    "scheduler allows a real-time loop under the same load")
+    ap.add_argument("--priority", type=int, default=0, help=argparse.SUPPRESS)
+    ap.add_argument("--role", choices=("subscriber", "client", "reference_loop"), help=argparse.SUPPRESS)
+    ap.add_argument("--out", help=argparse.SUPPRESS)
+    ap.add_argument("--seconds", type=float, default=0.0, help=argparse.SUPPRESS)
+    ap.add_argument("--calls", type=int, default=0, help=argparse.SUPPRESS)
+    ap.add_argument("--gate", help=argparse.SUPPRESS)
+    ap.add_argument("--states", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.role:  # SIGINT (the orchestrator's stop) ends a role even if it was started with SIGINT ignored
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    if args.role == "subscriber":
+        role_subscriber(args.out, args.gate, args.states, args.priority)
+        return 0
+    if args.role == "reference_loop":
+        role_reference_loop(args.out, args.gate, args.priority, 1e-3)
+        return 0
+    if args.role == "client":
+        role_client(args.out, args.gate, args.seconds, args.calls, args.service)
+        return 0
+
+    from deepprompt_ros.robots.spec import load_robot
+    from deepprompt_ros.server.config import ServerConfig, robot_limits
+    from deepprompt_ros.ros.testing import NodeProcess, isolated_ros_env
+
+    # SIGTERM (kill, timeout) ends the run like an error: the finally below stops every process started
+    # (rclpy, initialized later by the Orchestrator, calls this handler from its own)
+    signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
+
+    load_before = os.getloadavg()[0]  # other work on the machine (this benchmark adds ~1 when it runs)
+    tmp = pathlib.Path(tempfile.mkdtemp(prefix="bench_ros_"))
+    env = isolated_ros_env(tmp / "log")
+    spec = load_robot("gen3_lite")
+    limits = robot_limits(spec, ServerConfig())
+    procs = []
+    t_start = time.monotonic()
+    try:
+        prim_file = primitives_file(tmp, args.model, 100 if args.quick else 300)
+        sim_ros_args = [a for p in args.sim_param for a in ("-p", p)]
+        procs.append(NodeProcess.start_module("deepprompt_ros.ros.sim_bridge", env, params={
+            "camera.enabled": False, "publish_clock": False}, ros_args=sim_ros_args))
+        # the same measurement of the fast path, then of plain rclpy, against the same simulated robot
+        metrics = measure(args, env, tmp, prim_file, spec, limits, True, procs)
+        plain = measure(args, env, tmp, prim_file, spec, limits, False, procs)
+        _stop_all(procs)
+    metrics.update({f"{k}_plain": v for k, v in plain.items() if k not in ("srv_service",)})
+    for k in COMPARED:  # fast path / plain rclpy: < 1 where the fast path is faster
+        a, b = metrics[k], plain[k]
+        metrics[f"{k}_fast_over_plain"] = float(a / b) if b else float("nan")
     metrics["wall_s"] = time.monotonic() - t_start
 
     print(f"primitive_server benchmark ({'quick' if args.quick else 'full'}, loop_mode={args.loop_mode}, "
-          f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs; 1-min load average before the "
-          f"start {load_before:.2f}" + "".join(f", server {p}" for p in args.param)
+          f"fast_path true then false, load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs; 1-min "
+          f"load average before the start {load_before:.2f}" + "".join(f", server {p}" for p in args.param)
           + "".join(f", sim_bridge {p}" for p in args.sim_param)
           + (f", subscribers SCHED_FIFO {args.subscriber_priority}" if args.subscriber_priority > 0 else "") + ")")
-    print(f"{'metric':34s} value")
+    print(f"{'metric':40s} value")
     for k, v in metrics.items():
-        print(f"{k:34s} {v:.4g}" if isinstance(v, float) else f"{k:34s} {v}")
+        print(f"{k:40s} {v:.4g}" if isinstance(v, float) else f"{k:40s} {v}")
     keys = ["srv_p50_ms", "srv_p99_ms", "stream_hz", "stream_period_p99_err_ms", "stream_missed", "stream_lost",
-            "limit_violations"]
+            "limit_violations", "srv_p50_ms_plain", "srv_p99_ms_plain", "stream_period_p99_err_ms_plain",
+            "stream_missed_plain", "limit_violations_plain"] + [f"{k}_fast_over_plain" for k in COMPARED]
     print(" ".join(f"{k}={metrics[k]:.4g}" if isinstance(metrics[k], float) else f"{k}={metrics[k]}" for k in keys))
     return 0
 

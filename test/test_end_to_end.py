@@ -4,7 +4,7 @@ sim_bridge (PyBullet Gen3 lite) + demo_recorder: demonstrations guided kinesthet
 pulls the end effector through waypoints to varied targets), recorded to .npz -> a small DeepProMP
 trained here from those files -> primitive_server serving it: conditioned on one via-point (with
 refinement), executed on the simulated arm, and the arm's measured joint_states pass through the
-via-point.
+via-point; the server runs once with its fast path and once with plain rclpy (``fast_path: false``).
 """
 import time
 
@@ -186,12 +186,15 @@ def _condition(client, **kw):
     return r
 
 
-def test_learned_primitive_passes_through_a_via_point_on_the_arm(env, tmp, sim, client, model):
+@pytest.mark.parametrize("fast_path", [True, False], ids=["fast_path", "plain_rclpy"])
+def test_learned_primitive_passes_through_a_via_point_on_the_arm(env, tmp, sim, client, model, fast_path):
+    """The same condition -> execute with the server's fast path and with plain rclpy (``fast_path``)."""
     prims = tmp / "primitives.yaml"
     prims.write_text(yaml.safe_dump({"primitives": [{"name": "guided", "model": str(model)}]}))
     t_start = time.perf_counter()
+    assert client.call(Trigger, "reset").success  # every run starts from home, at rest
     with NodeProcess.start_module("deepprompt_ros.ros.primitive_server", env, params={
-            "robot": "gen3_lite", "primitives_file": str(prims),
+            "robot": "gen3_lite", "primitives_file": str(prims), "fast_path": fast_path,
             "stale_timeout": 1.0}) as server:  # on a loaded 2-core machine the Python sim can pause > 0.5 s
         ac = ActionClient(client.node, Execute, f"{SRV}/execute")
         tap = JointStateTap(client)

@@ -1,13 +1,13 @@
 """The 1 kHz control loop of primitive_server in a process of its own (``loop_process: true``).
 
 Why: in one interpreter the control thread and the service handlers share one interpreter lock.
-With both in the node's process, a Condition request that takes ~2 ms alone took 8.8 ms (p50)
-inside the handler and the loop missed thousands of periods per minute (README "Measured
-figures"). Here the child process owns everything that runs per tick: the
-:class:`~deepprompt_ros.execution.stream_loop.StreamLoop` with its controller, the ``joint_command``
-and JointTrajectory publishers and the joint_states reader (:class:`~deepprompt_ros.ros.loop_io.LoopIO`),
-on its own rclpy context and its one node (``<server>_control``, same namespace, topic names
-resolved by the server so remappings apply). The server keeps the services and the Execute action.
+With both in the node's process, a Condition request takes several times longer inside the
+handler than alone and the loop misses periods while a request is handled
+(``bench/bench_ros.py --param loop_process:=false`` shows both). Here the child process owns
+everything that runs per tick: the :class:`~deepprompt_ros.execution.stream_loop.StreamLoop` with
+its controller, the ``joint_command`` and JointTrajectory publishers and the joint_states reader
+(:class:`~deepprompt_ros.ros.loop_io.LoopIO`), on its own rclpy context and its one node
+(``<server>_control``, same namespace, topic names resolved by the server so remappings apply). The server keeps the services and the Execute action.
 With ``fast_path: false`` the child also spins its node with an executor (the joint_states
 subscription is then an ordinary callback).
 

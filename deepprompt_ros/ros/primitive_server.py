@@ -38,7 +38,7 @@ from __future__ import annotations
 import os
 
 # One OpenBLAS thread, set before numpy loads it: the decoder's small matrix products (100 x 128 by
-# 128 x 128) took 24 ms with 2 OpenBLAS threads on a busy 2-core machine and 0.17 ms with one.
+# 128 x 128) are many times slower with several OpenBLAS threads on a busy machine than with one.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import collections  # noqa: E402
