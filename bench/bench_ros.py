@@ -606,7 +606,6 @@ def measure(args, env, tmp: pathlib.Path, prim_file: pathlib.Path, spec, limits,
         metrics.update(limit_violations=viol + js_viol, limit_violations_measured=js_viol,
                        executions=n_exec, **{f"worst_{k}": v for k, v in worst.items()})
         metrics["exec_codes"] = json.dumps(codes, sort_keys=True).replace(" ", "")
-    finally:
         return metrics
     finally:
         if orch is not None:
@@ -689,6 +688,7 @@ def main(argv=None) -> int:
         # the same measurement of the fast path, then of plain rclpy, against the same simulated robot
         metrics = measure(args, env, tmp, prim_file, spec, limits, True, procs)
         plain = measure(args, env, tmp, prim_file, spec, limits, False, procs)
+    finally:
         _stop_all(procs)
     metrics.update({f"{k}_plain": v for k, v in plain.items() if k not in ("srv_service",)})
     for k in COMPARED:  # fast path / plain rclpy: < 1 where the fast path is faster
