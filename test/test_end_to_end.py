@@ -191,8 +191,8 @@ def test_learned_primitive_passes_through_a_via_point_on_the_arm(env, tmp, sim, 
     """The same condition -> execute with the server's fast path and with plain rclpy (``fast_path``)."""
     prims = tmp / "primitives.yaml"
     prims.write_text(yaml.safe_dump({"primitives": [{"name": "guided", "model": str(model)}]}))
-    t_start = time.perf_counter()
     assert client.call(Trigger, "reset").success  # every run starts from home, at rest
+    t_start = time.perf_counter()
     with NodeProcess.start_module("deepprompt_ros.ros.primitive_server", env, params={
             "robot": "gen3_lite", "primitives_file": str(prims), "fast_path": fast_path,
             "stale_timeout": 1.0}) as server:  # on a loaded 2-core machine the Python sim can pause > 0.5 s

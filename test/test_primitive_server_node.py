@@ -402,11 +402,11 @@ def test_benchmark_quick_mode_runs_and_reports_every_metric(setup):
     # a smoke run: the metrics are measured (speed itself is judged by `make bench`, not by tests)
     assert float(last["srv_p50_ms"]) > 0 and float(last["stream_hz"]) > 0
     assert int(last["limit_violations"]) == 0
-    table = {row[0]: row[1] for row in map(str.split, out.stdout.splitlines()) if len(row) == 2}
     # plain rclpy measured the same way: the same figures, the same limits kept
     assert float(last["srv_p50_ms_plain"]) > 0 and int(last["limit_violations_plain"]) == 0
     assert float(last["srv_p50_ms_fast_over_plain"]) == pytest.approx(
         float(last["srv_p50_ms"]) / float(last["srv_p50_ms_plain"]), rel=2e-3)
+    table = {row[0]: row[1] for row in map(str.split, out.stdout.splitlines()) if len(row) == 2}
     # the server's own figures: time inside its Condition callback (part of every round trip), the CPU
     # share of every process, and garbage collections that stay short once start-up objects are frozen
     assert 0 < float(table["srv_handler_p50_ms"]) <= float(last["srv_p50_ms"])
