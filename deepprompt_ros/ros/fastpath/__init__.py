@@ -1,4 +1,16 @@
 """Everything the nodes do around rclpy's public API, each piece in a module of its own with a test
-of its own: :mod:`.realtime` (real-time scheduling, CPU affinity, garbage-collector freezing, the
-interpreter's switch interval, OS thread names). A node parameter (``fast_path``) selects plain
-rclpy instead where a piece has a public-API equivalent."""
+of its own (``test/test_fastpath_<module>.py``):
+
+* :mod:`.wire` -- serialized message templates and the joint-command reader (hand-written CDR),
+  checked byte for byte against ``rclpy.serialization``;
+* :mod:`.polled` -- subscriptions and services that no executor waits on, and taking their
+  messages directly (rclpy's private subscription handle);
+* :mod:`.service_thread` -- services answered by a thread of their own on an rcl wait set (rclpy's
+  private ``implementation_singleton``);
+* :mod:`.realtime` -- real-time scheduling, CPU affinity, the interpreter's switch interval,
+  garbage-collector freezing, OS thread names.
+
+primitive_server's parameter ``fast_path: false`` replaces the first three by plain rclpy
+(executor-dispatched services and subscriptions, rclpy messages); an rclpy release that breaks
+them is caught by their tests.
+"""
