@@ -7,9 +7,9 @@ handler than alone and the loop misses periods while a request is handled
 everything that runs per tick: the :class:`~deepprompt_ros.execution.stream_loop.StreamLoop` with
 its controller, the ``joint_command`` and JointTrajectory publishers and the joint_states reader
 (:class:`~deepprompt_ros.ros.loop_io.LoopIO`), on its own rclpy context and its one node
-(``<server>_control``, same namespace, topic names resolved by the server so remappings apply). The server keeps the services and the Execute action.
-With ``fast_path: false`` the child also spins its node with an executor (the joint_states
-subscription is then an ordinary callback).
+(``<server>_control``, same namespace, topic names resolved by the server so remappings apply).
+The server keeps the services and the Execute action. With ``fast_path: false`` the child also
+spins its node with an executor (the joint_states subscription is then an ordinary callback).
 
 Link: one Unix socket pair (``multiprocessing.connection.Connection``) carrying the typed messages
 of :mod:`deepprompt_ros.execution.commands`: server -> child a ``LoopSetup`` once, then
