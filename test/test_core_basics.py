@@ -14,7 +14,9 @@ from deepprompt_ros.data.demonstration import DatasetError, demo_from_arrays
 from deepprompt_ros.data.io import load_csv, load_demo, save_demo
 from deepprompt_ros.data.synthetic import bimodal_sine
 from deepprompt_ros.model.checkpoint import CheckpointError, Normalization, load_checkpoint, save_checkpoint
-from deepprompt_ros.model.network import DeepProMPNet, ModelConfig, bayesian_aggregate, phase_features
+from deepprompt_ros.model.aggregation import bayesian_aggregate
+from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
+from deepprompt_ros.model.phase import phase_features
 from deepprompt_ros.primitive.deep_promp import DeepProMP
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]

@@ -1,7 +1,9 @@
-"""The DeepProMP network (paper Sec. III-A): per-modality encoders, one shared affine head,
-Bayesian aggregation with prior N(0, I) and importance weights, and an MLP decoder μ_y(z, x) —
-optionally a residual over a linear basis, μ_y(z, x) = Φ(x)(b + A z) + s·MLP(z, x)
-(``ModelConfig.decoder_basis``; the linear part alone is a PPCA-style ProMP in the latent).
+"""The DeepProMP network (paper Sec. III-A): per-modality encoders, one shared affine head giving
+the per-element (μ_i, σ²_i) that :func:`deepprompt_ros.model.aggregation.bayesian_aggregate`
+combines, and an MLP decoder μ_y(z, x) — optionally a residual over a linear basis,
+μ_y(z, x) = Φ(x)(b + A z) + s·MLP(z, x) (``ModelConfig.decoder_basis``; the linear part alone is a
+PPCA-style ProMP in the latent). The phase enters through
+:mod:`deepprompt_ros.model.phase`.
 
 All tensors here are in *normalized* units (joint positions and low-dim contexts standardized
 with the training set's statistics); :mod:`deepprompt_ros.primitive.deep_promp` converts to and from
@@ -14,12 +16,12 @@ import dataclasses
 import math
 from typing import Mapping
 
-import numpy as np
 import torch
 from torch import nn
 from torch.nn import functional as F
 
-PHASE_TYPES = ("linear", "rhythmic")
+from deepprompt_ros.model.phase import PHASE_TYPES, phase_basis, phase_dim, phase_features
+
 VARIANCE_HEADS = ("softplus", "exp")
 LOGVAR_MAX = 12.0  # "exp" head: σ²_i ≤ e^12 ≈ 1.6e5 (precision ≥ 6e-6, an element can all but vanish)
 
@@ -52,9 +54,10 @@ class ModelConfig:
         Both keep the rhythmic phase periodic.
     decoder_basis : int
         n_b > 0 adds a linear-basis part to the decoder: μ_y(z, x) = Φ(x)(b + A z) + s·MLP(z, x),
-        with Φ(x) the n_b normalized RBFs in phase of :class:`core.promp.ProMP` (von Mises functions
-        for a rhythmic phase), b (n_b, d) and A (n_b, d, k) learned (parameter ``basis``). The linear
-        part is a PPCA-style ProMP whose weights are b + A z; the MLP adds the nonlinearity.
+        with Φ(x) the n_b normalized RBFs in phase of :class:`deepprompt_ros.baselines.promp.ProMP`
+        (von Mises functions for a rhythmic phase; :func:`deepprompt_ros.model.phase.phase_basis`),
+        b (n_b, d) and A (n_b, d, k) learned (parameter ``basis``). The linear part is a PPCA-style
+        ProMP whose weights are b + A z; the MLP adds the nonlinearity.
         0 (default): the plain MLP decoder of the paper.
     basis_width : float
         RBF standard deviation relative to the centre spacing (ProMP's ``width``).
@@ -99,9 +102,7 @@ class ModelConfig:
 
     @property
     def phase_dim(self) -> int:
-        if self.phase_type == "rhythmic":
-            return 2 * max(1, self.phase_harmonics)
-        return 1 + 2 * self.phase_harmonics
+        return phase_dim(self.phase_type, self.phase_harmonics)
 
     @property
     def context_names(self) -> tuple[str, ...]:
@@ -136,66 +137,7 @@ def config_from_json(cls, d: Mapping, what: str):
     return cls(**d)
 
 
-def phase_features(x, phase_type: str, harmonics: int):
-    """Phase features φ(x) fed to the networks (works on numpy arrays and torch tensors).
-
-    Parameters
-    ----------
-    x : array, shape (...,)
-        Normalized phase.
-
-    Returns
-    -------
-    array, shape (..., p)
-    """
-    lib = torch if isinstance(x, torch.Tensor) else np
-    feats = []
-    if phase_type == "rhythmic":
-        for h in range(1, max(1, harmonics) + 1):
-            feats += [lib.sin(2 * math.pi * h * x), lib.cos(2 * math.pi * h * x)]
-    else:
-        feats.append(x)
-        for h in range(1, harmonics + 1):
-            feats += [lib.sin(math.pi * h * x), lib.cos(math.pi * h * x)]
-    return lib.stack(feats, -1)
-
-
-def phase_basis(x, n_basis: int, width: float, rhythmic: bool):
-    """Normalized basis Φ(x) of the decoder's linear part (numpy arrays or torch tensors).
-
-    Linear phase: Gaussian RBFs with centres linspace(0, 1, n) and standard deviation width/(n−1);
-    rhythmic: von Mises functions with centres j/n and concentration 1/(2π·width/n)², periodic in x.
-    Both normalized to sum to 1 at every phase (the basis of :class:`core.promp.ProMP`).
-
-    Parameters
-    ----------
-    x : array, shape (...,)
-
-    Returns
-    -------
-    array, shape (..., n)
-    """
-    lib = torch if isinstance(x, torch.Tensor) else np
-    if rhythmic:
-        centres = np.arange(n_basis) / n_basis
-        kappa = 1.0 / (2.0 * math.pi * width / n_basis) ** 2
-        u = x[..., None] - (torch.as_tensor(centres, dtype=x.dtype) if lib is torch else centres)
-        e = kappa * (lib.cos(2.0 * math.pi * u) - 1.0)
-    else:
-        centres = np.linspace(0.0, 1.0, n_basis)
-        h = width / (n_basis - 1)
-        u = x[..., None] - (torch.as_tensor(centres, dtype=x.dtype) if lib is torch else centres)
-        e = -0.5 * (u / h) ** 2
-    if lib is torch:
-        e = e - e.amax(-1, keepdim=True)  # the shift cancels in the normalization
-        b = torch.exp(e)
-        return b / b.sum(-1, keepdim=True)
-    e = e - e.max(-1, keepdims=True)
-    b = np.exp(e)
-    return b / b.sum(-1, keepdims=True)
-
-
-def _mlp_trunk(n_in: int, hidden: int) -> nn.Sequential:
+def mlp_trunk(n_in: int, hidden: int) -> nn.Sequential:
     """2 hidden ReLU layers (the paper's encoder body); the shared head follows."""
     return nn.Sequential(nn.Linear(n_in, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU())
 
@@ -221,27 +163,6 @@ class ImageEncoder(nn.Module):
         return (feat * m).sum(1) / m.sum(1).clamp_min(1.0)  # (B, h)
 
 
-def bayesian_aggregate(mu: torch.Tensor, var: torch.Tensor, weight: torch.Tensor):
-    """Bayesian aggregation with prior N(0, I) and importance weights (paper Eq. 1 and Eq. 3).
-
-    σ²_z = (1 + Σ_i ω_i / σ²_i)^-1,   μ_z = σ²_z Σ_i ω_i μ_i / σ²_i.
-
-    Parameters
-    ----------
-    mu, var : tensor, shape (B, N, k)
-    weight : tensor, shape (B, N)
-        ω_i ≥ 0; 0 removes element i exactly (also used as the padding mask).
-
-    Returns
-    -------
-    mu_z, var_z : tensor, shape (B, k)
-    """
-    prec = weight.unsqueeze(-1) / var  # (B, N, k)
-    var_z = 1.0 / (1.0 + prec.sum(1))
-    mu_z = var_z * (prec * mu).sum(1)
-    return mu_z, var_z
-
-
 class DeepProMPNet(nn.Module):
     """Encoders + shared affine head + decoder. See module docstring for units and shapes."""
 
@@ -249,8 +170,8 @@ class DeepProMPNet(nn.Module):
         super().__init__()
         self.cfg = cfg
         h, k = cfg.hidden, cfg.latent_dim
-        self.via_encoder = _mlp_trunk(cfg.phase_dim + cfg.n_joints, h)
-        self.context_encoders = nn.ModuleDict({n: _mlp_trunk(c, h) for n, c in cfg.context_dims})
+        self.via_encoder = mlp_trunk(cfg.phase_dim + cfg.n_joints, h)
+        self.context_encoders = nn.ModuleDict({n: mlp_trunk(c, h) for n, c in cfg.context_dims})
         self.image_encoder = ImageEncoder(h) if cfg.image_shape else None
         self.head = nn.Linear(h, 2 * k)  # ONE affine head shared by all encoders
         self.decoder = nn.Sequential(
@@ -305,7 +226,3 @@ class DeepProMPNet(nn.Module):
         w = self.basis(z).reshape(z.shape[0], self.cfg.decoder_basis, self.cfg.n_joints)  # (B, n_b, d)
         return torch.bmm(self.basis_functions(x), w)
 
-
-def gaussian_kl(mu_q, var_q, mu_p, var_p) -> torch.Tensor:
-    """KL(N(mu_q, var_q) || N(mu_p, var_p)) summed over the last dim (diagonal Gaussians)."""
-    return 0.5 * (torch.log(var_p / var_q) + (var_q + (mu_q - mu_p) ** 2) / var_p - 1.0).sum(-1)
