@@ -7,7 +7,7 @@ import pytest
 
 from deepprompt_ros.server.handles import (BlendedLatent, ConditionedLatent, HandleLimitError, HandleStore,
                                          Schedule, UnknownHandleError)
-from deepprompt_ros.primitive.deep_promp import LatentGaussian
+from deepprompt_ros.primitive.latent import LatentGaussian
 
 
 class FakeClock:

@@ -6,7 +6,8 @@ import pytest
 
 from deepprompt_ros.data.builtin import wam_shake
 from deepprompt_ros.data.synthetic import bimodal_sine
-from deepprompt_ros.primitive.deep_promp import DeepProMP, LatentGaussian
+from deepprompt_ros.primitive.deep_promp import DeepProMP
+from deepprompt_ros.primitive.latent import LatentGaussian
 from deepprompt_ros.baselines.promp import ProMP
 from deepprompt_ros.primitive.time_maps import LinearTimeMap, MonotoneTimeMap, RhythmicTimeMap, evaluate
 

@@ -30,8 +30,10 @@ from typing import TYPE_CHECKING, Callable, Union
 
 import numpy as np
 
+from deepprompt_ros.primitive.blending import blend_gaussians
+
 if TYPE_CHECKING:  # torch-free import (the server validates its parameters before loading torch)
-    from deepprompt_ros.primitive.deep_promp import LatentGaussian
+    from deepprompt_ros.primitive.latent import LatentGaussian
 
 __all__ = [
     "ConditionedLatent",
@@ -163,16 +165,13 @@ class BlendedLatent:
     def latent_at(self, x) -> tuple[np.ndarray, np.ndarray]:
         """Mean and variance of q_b(z | x) at phases x (T,): each shape (T, k).
 
-        Product of the two Gaussians raised to ω and 1 - ω: precision
-        ω/σ²_a + (1-ω)/σ²_b, mean (ω μ_a/σ²_a + (1-ω) μ_b/σ²_b) / precision.
+        Product of the two Gaussians raised to ω and 1 - ω
+        (:func:`deepprompt_ros.primitive.blending.blend_gaussians`).
         """
         x = np.asarray(x, dtype=np.float64)
-        w = self.schedule(x)[:, None]
         ma, va = self.a.latent_at(x)
         mb, vb = self.b.latent_at(x)
-        prec = w / va + (1.0 - w) / vb
-        mean = (w * ma / va + (1.0 - w) * mb / vb) / prec
-        return mean, 1.0 / prec
+        return blend_gaussians(self.schedule(x), ma, va, mb, vb)
 
 
 StoredDistribution = Union[ConditionedLatent, BlendedLatent]

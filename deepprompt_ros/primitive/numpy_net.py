@@ -1,0 +1,219 @@
+"""The float64 numpy twin of a trained :class:`deepprompt_ros.model.network.DeepProMPNet`, used by
+every deployment-time operation of :class:`deepprompt_ros.primitive.deep_promp.DeepProMP`.
+
+Small MLPs are dominated by per-call overhead in torch, and refinement needs float64 to reach
+1e-6 rad, so the weights are exported once into numpy: the via-point and context encoders with
+the shared head, and the decoder in joint units (the de-normalization folded into its output
+layer, the phase part of its first layer cached per phase grid), its exact Jacobian with respect
+to z and a smooth (softplus) surrogate of it for refinement's continuation. Images keep going
+through the torch CNN.
+
+Units: x phases in [0, 1]; y joint positions in joint units (rad); contexts raw. Shapes use
+T = phases, d = joints, k = latent dimension, h = hidden width, n_b = basis functions.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+import torch
+
+from deepprompt_ros.model.checkpoint import Normalization
+from deepprompt_ros.model.network import LOGVAR_MAX, DeepProMPNet
+from deepprompt_ros.model.phase import phase_basis, phase_features
+
+__all__ = ["NumpyMLP", "NumpyNet"]
+
+
+class NumpyMLP:
+    """ReLU MLP evaluated in float64 numpy; keeps the pre-activation masks for Jacobians."""
+
+    def __init__(self, seq: torch.nn.Sequential):
+        lin = [m for m in seq if isinstance(m, torch.nn.Linear)]
+        self.W = [m.weight.detach().double().numpy().copy() for m in lin]
+        self.b = [m.bias.detach().double().numpy().copy() for m in lin]
+        self.WT = [np.ascontiguousarray(w.T) for w in self.W]  # contiguous (in, out): faster GEMM
+        self.relu_last = isinstance(list(seq)[-1], torch.nn.ReLU)
+
+    def __call__(self, h: np.ndarray) -> np.ndarray:
+        n = len(self.W)
+        for i, (wt, b) in enumerate(zip(self.WT, self.b)):
+            h = h @ wt
+            h += b
+            if i < n - 1 or self.relu_last:
+                np.maximum(h, 0.0, out=h)
+        return h
+
+
+class NumpyNet:
+    """Encoders, head and decoder of ``net`` in float64 numpy, in joint units (``normalization``).
+
+    Nothing here validates its inputs: :class:`deepprompt_ros.primitive.deep_promp.DeepProMP` does.
+    The per-phase-grid caches are safe to share between threads (replaced atomically).
+    """
+
+    def __init__(self, net: DeepProMPNet, normalization: Normalization):
+        self.cfg = net.cfg
+        self.norm = normalization
+        self._via = NumpyMLP(net.via_encoder)
+        self._ctx = {n: NumpyMLP(m) for n, m in net.context_encoders.items()}
+        self._head_W = net.head.weight.detach().double().numpy().copy()
+        self._head_b = net.head.bias.detach().double().numpy().copy()
+        self._head_WT = np.ascontiguousarray(self._head_W.T)
+        self._dec = NumpyMLP(net.decoder)
+        k = self.cfg.latent_dim
+        nb, d = self.cfg.decoder_basis, self.cfg.n_joints
+        if nb:  # residual decoder: the MLP's output layer carries the factor s, the linear part is separate
+            self._dec.W[-1] = self._dec.W[-1] * self.cfg.residual_scale
+            self._dec.b[-1] = self._dec.b[-1] * self.cfg.residual_scale
+            self._dec.WT[-1] = np.ascontiguousarray(self._dec.W[-1].T)
+            ystd = np.asarray(normalization.y_std, dtype=np.float64)
+            # Φ(x)(b + A z) in joint units: b (n_b, d), A as (k, n_b·d) for z @ A and (n_b, d, k) for the Jacobian
+            bw = net.basis.weight.detach().double().numpy().reshape(nb, d, k) * ystd[None, :, None]
+            self._basis_b = net.basis.bias.detach().double().numpy().reshape(nb, d) * ystd[None, :]
+            self._basis_A = np.ascontiguousarray(bw)
+            self._basis_AT = np.ascontiguousarray(bw.reshape(nb * d, k).T)
+        self._phi_cache: dict[bytes, np.ndarray] = {}
+        self._dec_W1z = self._dec.W[0][:, :k]
+        self._dec_W1x = self._dec.W[0][:, k:]
+        self.y_mean = np.asarray(normalization.y_mean, dtype=np.float64)
+        self.y_std = np.asarray(normalization.y_std, dtype=np.float64)
+        # decode() fast path: contiguous transposed weights, the output layer with the
+        # de-normalization folded in, and the phase part of layer 1 cached per phase grid
+        self._W1zT = np.ascontiguousarray(self._dec_W1z.T)
+        self._W3T = np.ascontiguousarray(self._dec.W[2].T * self.y_std)
+        self._b3 = self._dec.b[2] * self.y_std + self.y_mean
+        self._pre_x_cache: dict[bytes, np.ndarray] = {}
+
+    @property
+    def context_names(self) -> list[str]:
+        """The low-dimensional context modalities that have an encoder."""
+        return list(self._ctx)
+
+    # ------------------------------------------------------------------ encoders
+    def _head(self, feat: np.ndarray):
+        out = feat @ self._head_WT
+        out += self._head_b
+        k = self.cfg.latent_dim
+        raw = out[..., k:]
+        if self.cfg.variance_head == "exp":  # as in the network (DeepProMPNet._head)
+            var = np.exp(np.minimum(raw, LOGVAR_MAX)) + self.cfg.var_floor
+        else:
+            var = np.logaddexp(0.0, raw) + self.cfg.var_floor  # softplus + floor
+        return out[..., :k], var
+
+    def _phase_feats(self, x: np.ndarray) -> np.ndarray:
+        return phase_features(x, self.cfg.phase_type, self.cfg.phase_harmonics)
+
+    def encode_via_points(self, x: np.ndarray, y: np.ndarray):
+        """Per-element q(z | a_i): x (n,), y (n, d) rad → μ_i, σ²_i (n, k)."""
+        yn = (y - self.y_mean) / self.y_std
+        return self._head(self._via(np.concatenate([self._phase_feats(x), yn], 1)))
+
+    def encode_context(self, name: str, c: np.ndarray):
+        """q(z | c_i): c (m, c_dim) raw units → μ_i, σ²_i (m, k)."""
+        cn = (c - self.norm.ctx_mean[name]) / self.norm.ctx_std[name]
+        return self._head(self._ctx[name](cn))
+
+    # ------------------------------------------------------------------ decoder
+    def decode(self, z, x) -> np.ndarray:
+        """μ_y(z, x) in joint units: z (k,) → (T, d), z (n, k) → (n, T, d); x (T,)."""
+        z = np.asarray(z, dtype=np.float64)
+        pre_x = self._layer1_phase(x)  # (T, h)
+        if z.ndim == 1:
+            h = pre_x + z @ self._W1zT
+        else:
+            h = pre_x[None] + (z @ self._W1zT)[:, None, :]
+        np.maximum(h, 0.0, out=h)
+        out = self._decode_hidden(h)
+        if self.cfg.decoder_basis:
+            out += self._linear_part(z, x)
+        return out
+
+    @staticmethod
+    def _per_grid(cache: dict, x, compute: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+        """compute(x) cached per phase grid (a server decodes the same preview / control grid again
+        and again); at most 16 grids, the result read-only: do not modify."""
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        key = x.tobytes()
+        out = cache.get(key)
+        if out is None:
+            out = compute(x)
+            out.flags.writeable = False
+            if len(cache) >= 16:
+                cache.clear()  # atomic (several server threads decode)
+            cache[key] = out
+        return out
+
+    def _phi(self, x) -> np.ndarray:
+        """Φ(x) of the decoder's linear part, (T, n_b); cached per phase grid like the phase layer."""
+        c = self.cfg
+        return self._per_grid(self._phi_cache, x, lambda x: phase_basis(x, c.decoder_basis, c.basis_width,
+                                                                         c.phase_type == "rhythmic"))
+
+    def _linear_part(self, z: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """Φ(x)(b + A z) in joint units (without the mean, which ``_b3`` carries): z (k,) → (T, d),
+        z (n, k) → (n, T, d)."""
+        nb, d = self.cfg.decoder_basis, self.cfg.n_joints
+        w = (z @ self._basis_AT).reshape(*z.shape[:-1], nb, d) + self._basis_b  # (..., n_b, d)
+        return self._phi(x) @ w
+
+    def _decode_hidden(self, h1: np.ndarray) -> np.ndarray:
+        """Decoder layers 2 and 3 from the first hidden layer's activations (..., h) → joint units (..., d)."""
+        h = h1 @ self._dec.WT[1]
+        h += self._dec.b[1]
+        np.maximum(h, 0.0, out=h)
+        out = h @ self._W3T
+        out += self._b3
+        return out
+
+    def _layer1_phase(self, x) -> np.ndarray:
+        """W1x φ(x) + b1 of the decoder's first layer, (T, h); cached per phase grid (a server
+        decodes the same preview / control grid again and again). Read-only: do not modify."""
+        return self._per_grid(self._pre_x_cache, x, lambda x: self._phase_feats(x) @ self._dec_W1x.T + self._dec.b[0])
+
+    def decode_per_phase(self, z_x: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """Decode a latent that varies with phase (blending): z_x (T, k), x (T,) → (T, d)."""
+        h = self._layer1_phase(x) + z_x @ self._W1zT
+        np.maximum(h, 0.0, out=h)
+        out = self._decode_hidden(h)
+        if self.cfg.decoder_basis:  # Σ_b φ_b(x_t)(b_b + A_b z_t), one z per phase
+            w = (z_x @ self._basis_AT).reshape(z_x.shape[0], self.cfg.decoder_basis, self.cfg.n_joints) + self._basis_b
+            out += np.einsum("tb,tbd->td", self._phi(x), w)
+        return out
+
+    def decoder_jacobian(self, z: np.ndarray, x: np.ndarray, smoothing: float | None = None):
+        """μ_y(z, x_i) and ∂μ_y/∂z at each phase, joint units.
+
+        Parameters
+        ----------
+        z : array, shape (k,) or (K, k)
+        x : array, shape (n,)
+        smoothing : float, optional
+            β of a softplus log(1 + e^{βh})/β standing in for ReLU (a smooth surrogate of the
+            decoder used by refinement's continuation; None = the exact ReLU decoder).
+
+        Returns
+        -------
+        y : array, shape (n, d) or (K, n, d); jac : array, shape (n, d, k) or (K, n, d, k)
+        """
+        if smoothing is None:
+            act = lambda h: np.maximum(h, 0.0)  # noqa: E731
+            dact = lambda h: (h > 0).astype(np.float64)  # noqa: E731
+        else:
+            b = float(smoothing)
+            act = lambda h: np.logaddexp(0.0, b * h) / b  # noqa: E731
+            dact = lambda h: 0.5 * (1.0 + np.tanh(0.5 * b * h))  # noqa: E731  (= sigmoid(βh))
+        zw = z @ self._W1zT  # (h,) or (K, h)
+        pre1 = self._layer1_phase(x) + zw[..., None, :]  # (..., n, h)
+        pre2 = act(pre1) @ self._dec.WT[1] + self._dec.b[1]
+        y = act(pre2) @ self._W3T + self._b3
+        # chain rule multiplied from the output side (d < k < h): per phase d·h² + d·h·k flops
+        # instead of h²·k + d·h·k
+        c = self._dec.W[2][..., None, :, :] * dact(pre2)[..., None, :]  # (..., n, d, h)
+        c = np.matmul(c, self._dec.W[1]) * dact(pre1)[..., None, :]  # batched BLAS, (..., n, d, h)
+        jac = np.matmul(c, self._dec_W1z) * self.y_std[:, None]  # (..., n, d, k)
+        if self.cfg.decoder_basis:  # the linear part: its Jacobian Σ_b φ_b(x) A_b is the same for every z
+            y = y + self._linear_part(z, x)
+            jac = jac + np.einsum("nb,bdk->ndk", self._phi(x), self._basis_A)
+        return y, jac
