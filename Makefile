@@ -27,7 +27,7 @@ run: setup
 	$(PY) -m deepprompt_ros.run_main
 
 # Reproduce the shipped primitives in models/ (seeded; see README "Shipped models").
-TRAIN := $(PY) -m deepprompt_ros.training.loop
+TRAIN := $(PY) -m deepprompt_ros.training.cli
 models: train-sine train-reach train-shake
 train-sine: setup
 	$(TRAIN) --builtin bimodal_sine --config config/train_bimodal_sine.yaml --out models/bimodal_sine.safetensors

@@ -35,7 +35,7 @@ setup(
             "primitive_server = deepprompt_ros.ros.primitive_server:main",
             "sim_bridge = deepprompt_ros.ros.sim_bridge:main",
             "demo_recorder = deepprompt_ros.ros.demo_recorder:main",
-            "train = deepprompt_ros.training.loop:main",
+            "train = deepprompt_ros.training.cli:main",
         ],
     },
 )

@@ -82,7 +82,8 @@ def tiny_reach_model(path: pathlib.Path, steps: int = 300) -> pathlib.Path:
     from deepprompt_ros.data.demonstration import Demonstration
     from deepprompt_ros.robots.spec import load_robot
     from deepprompt_ros.sim.tasks.min_jerk import min_jerk
-    from deepprompt_ros.training.loop import TrainConfig, train
+    from deepprompt_ros.training.config import TrainConfig
+    from deepprompt_ros.training.loop import train
 
     spec = load_robot("gen3_lite")
     rng = np.random.default_rng(0)

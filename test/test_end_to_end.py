@@ -22,7 +22,8 @@ from std_srvs.srv import SetBool, Trigger
 from deepprompt_ros.data.demo_dataset import load_dataset
 from deepprompt_ros.robots.kinematics import RobotKinematics
 from deepprompt_ros.robots.spec import load_robot
-from deepprompt_ros.training.loop import TrainConfig, train
+from deepprompt_ros.training.config import TrainConfig
+from deepprompt_ros.training.loop import train
 from deepprompt_ros.ros import conversions as conv
 from deepprompt_ros.ros.testing import JointStateTap, NodeProcess, RosTestClient, isolated_ros_env
 

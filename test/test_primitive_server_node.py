@@ -28,7 +28,8 @@ from deepprompt_ros.data.demonstration import Demonstration
 from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
 from deepprompt_ros.robots.spec import load_robot
 from deepprompt_ros.execution.limits import check_limits
-from deepprompt_ros.training.loop import TrainConfig, train
+from deepprompt_ros.training.config import TrainConfig
+from deepprompt_ros.training.loop import train
 from deepprompt_ros.ros import conversions as conv
 from deepprompt_ros.ros.testing import NodeProcess, RosTestClient, isolated_ros_env
 

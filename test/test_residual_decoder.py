@@ -11,11 +11,15 @@ import torch
 from deepprompt_ros.model.checkpoint import Normalization, load_checkpoint, save_checkpoint
 from deepprompt_ros.data.demo_dataset import DemoDataset
 from deepprompt_ros.data.demonstration import Demonstration
-from deepprompt_ros.model.network import DeepProMPNet, ModelConfig, phase_basis
-from deepprompt_ros.primitive.deep_promp import DeepProMP, LatentGaussian
+from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
+from deepprompt_ros.model.phase import phase_basis
+from deepprompt_ros.primitive.deep_promp import DeepProMP
+from deepprompt_ros.primitive.latent import LatentGaussian
 from deepprompt_ros.baselines.promp import ProMP
-from deepprompt_ros.training.loop import (TrainConfig, cv_basis_hyperparameters, fit_normalization, init_basis_pca,
-                                       linear_map_condition, pca_basis, to_tensors, train)
+from deepprompt_ros.training.basis import cv_basis_hyperparameters, init_basis_pca, linear_map_condition, pca_basis
+from deepprompt_ros.training.config import TrainConfig
+from deepprompt_ros.training.loop import train
+from deepprompt_ros.training.tensors import fit_normalization, to_tensors
 
 torch.set_num_threads(1)
 NORM = Normalization(np.array([0.1, -0.2, 0.3]), np.array([0.5, 1.5, 2.0]))

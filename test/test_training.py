@@ -10,7 +10,8 @@ import pytest
 
 from deepprompt_ros.model.checkpoint import load_checkpoint
 from deepprompt_ros.data.synthetic import bimodal_sine
-from deepprompt_ros.training.loop import TrainConfig, train
+from deepprompt_ros.training.config import TrainConfig
+from deepprompt_ros.training.loop import train
 
 
 @pytest.mark.parametrize("objective", ["np", "paper"])
@@ -29,7 +30,7 @@ def test_train_cli_writes_checkpoint_with_provenance(tmp_path):
     cfg = tmp_path / "cfg.yaml"
     cfg.write_text("steps: 30\nval_every: 15\nhidden: 32\nlatent_dim: 4\nthreads: 1\nn_points: 40\n")
     out = tmp_path / "m.safetensors"
-    proc = subprocess.run([sys.executable, "-m", "deepprompt_ros.training.loop", "--builtin", "bimodal_sine",
+    proc = subprocess.run([sys.executable, "-m", "deepprompt_ros.training.cli", "--builtin", "bimodal_sine",
                            "--config", str(cfg), "--out", str(out)], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert str(out.resolve()) in proc.stdout
@@ -54,7 +55,7 @@ def test_train_cli_writes_checkpoint_with_provenance(tmp_path):
 def test_bad_training_config_is_refused(tmp_path, text, message):
     cfg = tmp_path / "bad.yaml"
     cfg.write_text(text)
-    proc = subprocess.run([sys.executable, "-m", "deepprompt_ros.training.loop", "--builtin", "bimodal_sine",
+    proc = subprocess.run([sys.executable, "-m", "deepprompt_ros.training.cli", "--builtin", "bimodal_sine",
                            "--config", str(cfg), "--out", str(tmp_path / "x.safetensors")],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and message in proc.stderr, proc.stderr
@@ -63,7 +64,7 @@ def test_bad_training_config_is_refused(tmp_path, text, message):
 
 
 def test_bad_dataset_folder_is_refused(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "deepprompt_ros.training.loop", "--data", str(tmp_path / "none"),
+    proc = subprocess.run([sys.executable, "-m", "deepprompt_ros.training.cli", "--data", str(tmp_path / "none"),
                            "--out", str(tmp_path / "x.safetensors")], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "does not exist" in proc.stderr and "Traceback" not in proc.stderr
 
@@ -71,7 +72,8 @@ def test_bad_dataset_folder_is_refused(tmp_path):
 def test_low_information_subsets_come_from_the_phases_where_demos_agree():
     import torch
 
-    from deepprompt_ros.training.loop import fit_normalization, sample_subset_weights, to_tensors
+    from deepprompt_ros.training.objectives import sample_subset_weights
+    from deepprompt_ros.training.tensors import fit_normalization, to_tensors
 
     ds = bimodal_sine(64, n_points=100, seed=3)
     cfg = TrainConfig(n_points=100, max_via_points=10, p_via_points=1.0, p_empty=0.0, p_context=0.0,
@@ -122,7 +124,8 @@ def test_consistency_coverage_reaches_the_encoder_only_when_asked():
     import torch
 
     from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
-    from deepprompt_ros.training.loop import fit_normalization, loss_fn, to_tensors
+    from deepprompt_ros.training.objectives import loss_fn
+    from deepprompt_ros.training.tensors import fit_normalization, to_tensors
 
     ds = bimodal_sine(16, n_points=30, seed=0)
     data = to_tensors(ds, fit_normalization(ds, 30), 30)

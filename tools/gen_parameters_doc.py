@@ -83,7 +83,7 @@ def render() -> str:
     specs = specs_of(train)
     out.append("## Training configuration\n")
     if specs:
-        out.append(f"Keys of the training YAML files (`config/train_*.yaml`, `python -m deepprompt_ros.training.loop "
+        out.append(f"Keys of the training YAML files (`config/train_*.yaml`, `python -m deepprompt_ros.training.cli "
                    f"--config <file>`); declared as {_where(train)}.\n")
         out.append(markdown_table(specs) + "\n")
     else:
