@@ -26,8 +26,7 @@ from deepprompt_ros.data.synthetic import bimodal_sine  # noqa: E402
 from deepprompt_ros.primitive.deep_promp import DeepProMP  # noqa: E402
 from deepprompt_ros.baselines.promp import ProMP  # noqa: E402
 from deepprompt_ros.sim.tasks.kinematic_reach import reach_demos  # noqa: E402
-from deepprompt_ros.training.config import TrainConfig  # noqa: E402
-from deepprompt_ros.training.loop import train  # noqa: E402
+from deepprompt_ros.training.loop import TrainConfig, train  # noqa: E402
 
 
 def timed(fn, repeats: int) -> list[float]:
@@ -45,7 +44,8 @@ def server_handler(n_joints: int, repeats: int, gap_repeats: int, gap: float = 0
     back, then with ``gap`` s of sleep before each call (wall and thread CPU time)."""
     from deepprompt_ros.server.config import ServerConfig, robot_limits
     from deepprompt_ros.server.primitives_file import PrimitiveEntry, load_primitive
-    from deepprompt_ros.server.requests import Code, ConditionRequest, ContextIn, ViaPointIn
+    from deepprompt_ros.common.results import Code
+    from deepprompt_ros.server.requests import ConditionRequest, ContextIn, ViaPointIn
     from deepprompt_ros.server.service import PrimitiveServerCore
     from deepprompt_ros.robots.spec import load_robot
 

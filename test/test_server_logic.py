@@ -15,6 +15,7 @@ import torch
 import yaml
 
 from deepprompt_ros.common.params import ConfigError, markdown_table
+from deepprompt_ros.common.results import Code, RequestError
 from deepprompt_ros.execution.brake_tail import BrakeTail, trajectory_points
 from deepprompt_ros.execution.controller import ExecutionController, ExecutionGoal, MeasuredState, Stage
 from deepprompt_ros.execution.limits import check_limits
@@ -25,8 +26,8 @@ from deepprompt_ros.robots.spec import load_robot
 from deepprompt_ros.server.config import PARAMETERS, ServerConfig, robot_limits
 from deepprompt_ros.server.images import decode_image
 from deepprompt_ros.server.primitives_file import PrimitiveEntry, load_primitive, load_primitives, read_primitives_file
-from deepprompt_ros.server.requests import (BlendRequest, Code, ConditionRequest, ContextIn, ExecuteRequest, ImageIn,
-                                            RequestError, SampleRequest, ViaPointIn)
+from deepprompt_ros.server.requests import (BlendRequest, ConditionRequest, ContextIn, ExecuteRequest, ImageIn,
+                                            SampleRequest, ViaPointIn)
 from deepprompt_ros.server.service import PrimitiveServerCore
 
 REPO = pathlib.Path(__file__).resolve().parent.parent

@@ -33,11 +33,11 @@ from typing import NamedTuple
 
 import numpy as np
 
+from deepprompt_ros.common.results import Code
 from deepprompt_ros.execution.limits import JointLimits
 from deepprompt_ros.execution.plan import ExecutionPlan
 from deepprompt_ros.execution.ruckig_streamer import RuckigStreamer, StreamStatus
 from deepprompt_ros.server.config import ServerConfig
-from deepprompt_ros.server.requests import Code
 
 __all__ = ["Stage", "Outcome", "Progress", "MeasuredState", "Sample", "Snapshot", "ExecutionGoal",
            "ExecutionController"]

@@ -32,10 +32,10 @@ from typing import Callable
 
 import numpy as np
 
+from deepprompt_ros.common.results import Code, RequestError
 from deepprompt_ros.execution.controller import (ExecutionController, ExecutionGoal, MeasuredState, Outcome, Snapshot,
                                                   Stage)
 from deepprompt_ros.server.config import ServerConfig
-from deepprompt_ros.server.requests import Code, RequestError
 
 __all__ = ["StreamLoop", "LoopStats"]
 

@@ -39,7 +39,7 @@ import threading  # noqa: E402
 import time  # noqa: E402
 from multiprocessing.connection import Connection  # noqa: E402
 
-from deepprompt_ros.server.requests import Code, RequestError  # noqa: E402
+from deepprompt_ros.common.results import Code, RequestError  # noqa: E402
 from deepprompt_ros.execution.commands import (CancelGoal, GoalDone, LoopReady, LoopSetup, LoopStatus,  # noqa: E402
                                                SetGoalRate, StartGoal, StopLoop)
 from deepprompt_ros.execution.controller import ExecutionGoal, Outcome, Stage  # noqa: E402

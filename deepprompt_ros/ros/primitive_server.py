@@ -60,11 +60,11 @@ from rclpy.node import Node
 
 from deepprompt_ros import paths
 from deepprompt_ros.common.params import ConfigError
+from deepprompt_ros.common.results import Code, RequestError
 from deepprompt_ros.ros.parameters import declare_config
 from deepprompt_ros.server.config import ServerConfig, robot_limits
 from deepprompt_ros.server.primitives_file import load_primitives, read_primitives_file
-from deepprompt_ros.server.requests import (BlendRequest, Code, ConditionRequest, ExecuteRequest, RequestError,
-                                            SampleRequest)
+from deepprompt_ros.server.requests import BlendRequest, ConditionRequest, ExecuteRequest, SampleRequest
 from deepprompt_ros.server.service import PrimitiveServerCore
 from deepprompt_ros.ros import conversions as conv
 from deepprompt_ros.execution.commands import LoopSetup

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from deepprompt_ros.server.requests import Code, ImageIn, RequestError
+from deepprompt_ros.common.results import Code, RequestError
+from deepprompt_ros.server.requests import ImageIn
 
 __all__ = ["IMAGE_ENCODINGS", "decode_image"]
 

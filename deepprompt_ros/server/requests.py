@@ -1,56 +1,25 @@
-"""The primitive server's plain request and result types and its result codes.
+"""The primitive server's plain request and result types.
 
 The ROS node converts messages to these types (:mod:`deepprompt_ros.ros.conversions`), calls
 :class:`~deepprompt_ros.server.service.PrimitiveServerCore` and converts the results back;
-nothing here needs rclpy. Every request that cannot be carried out raises :class:`RequestError`
-with a :class:`Code` (the values of ``deepprompt_msgs/msg/ResultCode``, shared by the services,
-the Execute action and the control loop) and a message that says what was wrong and what is
-expected.
+nothing here needs rclpy. Every request that cannot be carried out raises
+:class:`~deepprompt_ros.common.results.RequestError` with a
+:class:`~deepprompt_ros.common.results.Code` (the values of ``deepprompt_msgs/msg/ResultCode``)
+and a message that says what was wrong and what is expected.
 """
 from __future__ import annotations
 
 import dataclasses
-import enum
 from typing import NamedTuple, Sequence
 
 import numpy as np
 
+from deepprompt_ros.common.results import Code
+
 __all__ = [
-    "Code", "RequestError", "ViaPointIn", "ImageIn", "ContextIn", "ConditionRequest", "BlendRequest",
-    "SampleRequest", "ExecuteRequest", "Preview", "ConditionResult", "BlendResult", "SampleResult",
-    "PrimitiveDescription",
+    "ViaPointIn", "ImageIn", "ContextIn", "ConditionRequest", "BlendRequest", "SampleRequest",
+    "ExecuteRequest", "Preview", "ConditionResult", "BlendResult", "SampleResult", "PrimitiveDescription",
 ]
-
-
-class Code(enum.IntEnum):
-    """Result codes; the same values as the constants of ``deepprompt_msgs/msg/ResultCode``."""
-
-    SUCCESS = 0
-    INVALID_REQUEST = 1
-    UNKNOWN_PRIMITIVE = 2
-    UNKNOWN_HANDLE = 3
-    INVALID_VIA_POINT = 4
-    INVALID_CONTEXT = 5
-    INVALID_IMAGE = 6
-    REFINEMENT_UNREACHABLE = 7
-    HANDLE_LIMIT = 8
-    ROBOT_STATE_STALE = 9
-    LIMIT_VIOLATION = 10
-    CANCELED = 11
-    PREEMPTED = 12
-    NO_ACTIVE_EXECUTION = 13
-    RECORDING_ACTIVE = 14
-    NOT_RECORDING = 15
-    INTERNAL_ERROR = 99
-
-
-class RequestError(Exception):
-    """A request that cannot be carried out: ``code`` and an actionable ``message``."""
-
-    def __init__(self, code: Code, message: str):
-        super().__init__(message)
-        self.code = Code(code)
-        self.message = message
 
 
 class ViaPointIn(NamedTuple):

@@ -3,7 +3,7 @@ describing the loaded primitives and planning an Execute goal.
 
 :class:`PrimitiveServerCore` takes the plain requests of :mod:`deepprompt_ros.server.requests`,
 checks them (every invalid request raises
-:class:`~deepprompt_ros.server.requests.RequestError` with a code and an actionable message),
+:class:`~deepprompt_ros.common.results.RequestError` with a code and an actionable message),
 stores conditioned and blended distributions in the handle store
 (:mod:`deepprompt_ros.server.handles`) and turns a handle into the
 :class:`~deepprompt_ros.execution.plan.ExecutionPlan` the control loop runs.
@@ -15,6 +15,7 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
+from deepprompt_ros.common.results import Code, RequestError
 from deepprompt_ros.execution.limits import JointLimits
 from deepprompt_ros.execution.plan import ExecutionPlan, ExecutionReference
 from deepprompt_ros.server.config import ServerConfig
@@ -22,9 +23,9 @@ from deepprompt_ros.server.handles import (BlendedLatent, ConditionedLatent, Han
                                            StoredDistribution, UnknownHandleError)
 from deepprompt_ros.server.images import decode_image
 from deepprompt_ros.server.primitives_file import LoadedPrimitive
-from deepprompt_ros.server.requests import (BlendRequest, BlendResult, Code, ConditionRequest, ConditionResult,
-                                            ExecuteRequest, Preview, PrimitiveDescription, RequestError,
-                                            SampleRequest, SampleResult)
+from deepprompt_ros.server.requests import (BlendRequest, BlendResult, ConditionRequest, ConditionResult,
+                                            ExecuteRequest, Preview, PrimitiveDescription, SampleRequest,
+                                            SampleResult)
 
 __all__ = ["PrimitiveServerCore"]
 
