@@ -28,7 +28,7 @@ if TYPE_CHECKING:  # annotations only: this module imports nothing at run time
     from deepprompt_ros.execution.limits import JointLimits
     from deepprompt_ros.execution.plan import ExecutionPlan
     from deepprompt_ros.execution.controller import Outcome, Progress, Stage
-    from deepprompt_ros.server.config import ServerConfig
+    from deepprompt_ros.execution.settings import LoopSettings
 
 __all__ = ["LoopSetup", "StartGoal", "CancelGoal", "SetGoalRate", "StopLoop", "LoopReady", "LoopStatus",
            "GoalDone", "LoopCommand", "LoopReport"]
@@ -46,7 +46,10 @@ class LoopSetup:
     limits : JointLimits
     dt : float
         Control period (s).
-    config : ServerConfig
+    config : LoopSettings
+        The loop's settings. The server sends its ServerConfig (a LoopSettings subclass): the
+        control process also reads the settings of its process and node from it (``control_cpu``,
+        ``gil_switch_interval``, ``fast_path``, ``trajectory_stamp``).
     joint_names : tuple of str
         The robot's joints, in its order.
     command_topic, trajectory_topic, joint_states_topic : str
@@ -57,7 +60,7 @@ class LoopSetup:
 
     limits: JointLimits
     dt: float
-    config: ServerConfig
+    config: LoopSettings
     joint_names: tuple[str, ...]
     command_topic: str
     trajectory_topic: str

@@ -37,7 +37,7 @@ from deepprompt_ros.common.results import Code
 from deepprompt_ros.execution.limits import JointLimits
 from deepprompt_ros.execution.plan import ExecutionPlan
 from deepprompt_ros.execution.ruckig_streamer import RuckigStreamer, StreamStatus
-from deepprompt_ros.server.config import ServerConfig
+from deepprompt_ros.execution.settings import LoopSettings
 
 __all__ = ["Stage", "Outcome", "Progress", "MeasuredState", "Sample", "Snapshot", "ExecutionGoal",
            "ExecutionController"]
@@ -152,13 +152,13 @@ class ExecutionController:
     ----------
     limits : JointLimits (robot joint order)
     dt : float
-    config : ServerConfig
+    config : LoopSettings
     """
 
     SETTLE_TIMEOUT = 30.0  # s; a goal that does not come to rest by then ends with INTERNAL_ERROR
     MAX_ERROR_TICKS = 100  # consecutive ruckig failures (each braking one tick) before aborting
 
-    def __init__(self, limits: JointLimits, dt: float, config: ServerConfig):
+    def __init__(self, limits: JointLimits, dt: float, config: LoopSettings):
         self.limits = limits
         self.dt = float(dt)
         self.config = config

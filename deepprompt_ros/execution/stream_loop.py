@@ -35,7 +35,7 @@ import numpy as np
 from deepprompt_ros.common.results import Code, RequestError
 from deepprompt_ros.execution.controller import (ExecutionController, ExecutionGoal, MeasuredState, Outcome, Snapshot,
                                                   Stage)
-from deepprompt_ros.server.config import ServerConfig
+from deepprompt_ros.execution.settings import LoopSettings
 
 __all__ = ["StreamLoop", "LoopStats"]
 
@@ -85,6 +85,7 @@ class StreamLoop:
     Parameters
     ----------
     controller : ExecutionController
+    config : LoopSettings
     publish_command : callable (q, qd, qdd, due) -> None, or None
         Called every tick with the due sample (robot joint order); ``due`` is the
         time.perf_counter() at which it is due (the tick's deadline).
@@ -109,7 +110,7 @@ class StreamLoop:
     #: is costly in Python, so it is not done every tick)
     state_poll = 0.01
 
-    def __init__(self, controller: ExecutionController, config: ServerConfig,
+    def __init__(self, controller: ExecutionController, config: LoopSettings,
                  publish_command: Callable | None = None, publish_trajectory: Callable | None = None,
                  on_error: Callable[[str], None] = lambda msg: None, poll_measured: Callable | None = None,
                  thread_setup: Callable[[str, int], str] | None = None):

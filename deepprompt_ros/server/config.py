@@ -2,8 +2,10 @@
 
 :class:`ServerConfig` is a frozen dataclass whose fields are made with
 :func:`~deepprompt_ros.common.params.param` (type, default, description, inclusive range or
-choices, unit): the node declares its ROS parameters from :data:`PARAMETERS`, the values are
-checked by :mod:`deepprompt_ros.common.params` (every invalid one reported at once in a
+choices, unit); the control loop's settings are the fields of its base class
+:class:`~deepprompt_ros.execution.settings.LoopSettings`, declared there. The node declares its
+ROS parameters from :data:`PARAMETERS`, the values are checked by
+:mod:`deepprompt_ros.common.params` (every invalid one reported at once in a
 :class:`~deepprompt_ros.common.params.ConfigError`), and
 ``python -m deepprompt_ros.server.config`` prints the Markdown table of them.
 :func:`robot_limits` applies the velocity / acceleration / jerk scales to a robot's limits.
@@ -18,16 +20,20 @@ import numpy as np
 from deepprompt_ros.common import params
 from deepprompt_ros.common.params import param
 from deepprompt_ros.execution.limits import JointLimits
+from deepprompt_ros.execution.settings import LoopSettings
 
 __all__ = ["ServerConfig", "PARAMETERS", "robot_limits"]
 
 
 @dataclasses.dataclass(frozen=True)
-class ServerConfig:
+class ServerConfig(LoopSettings):
     """Parameters of the primitive server (ROS parameters of the same names).
 
     Every field is one parameter: its annotation is the type, its default the default, and its
-    metadata the description and the valid range (inclusive) or the allowed choices.
+    metadata the description and the valid range (inclusive) or the allowed choices. The control
+    loop's settings are the fields of the base class
+    :class:`~deepprompt_ros.execution.settings.LoopSettings` (declared there, parameters of the
+    server like the others); a ServerConfig is what the server hands to the loop.
     """
 
     # -- robot and primitives
@@ -43,20 +49,10 @@ class ServerConfig:
     loop_mode: str = param("thread", "Pacing of the control loop: 'thread' (dedicated thread, absolute "
                            "perf_counter deadlines) or 'timer' (ROS timer in its own callback group).",
                            choices=("thread", "timer"))
-    spin_wait: float = param(0.0, "'thread' mode: busy-wait this long before each deadline instead of "
-                             "sleeping up to it (a sleep can wake up late by the operating system's timer "
-                             "slack); 0 = sleep only. The busy wait burns CPU and holds the interpreter lock "
-                             "while it runs.", min=0.0, max=0.01, unit="s")
     gil_switch_interval: float = param(0.0002, "sys.setswitchinterval of the node process: the longest "
                                        "another Python thread keeps the interpreter lock while the control "
                                        "loop waits for it (Python's default is 0.005 s).",
                                        min=1e-5, max=0.1, unit="s")
-    realtime_priority: int = param(50, "SCHED_FIFO priority of the control thread ('thread' mode; with "
-                                   "loop_process, of every thread of the control process, so that none "
-                                   "holding the interpreter lock is preempted by another process); 0 = normal "
-                                   "scheduling. Needs CAP_SYS_NICE (root, or rtprio in limits.conf); refused "
-                                   "-> a warning, normal scheduling (as ros2_control's controller_manager).",
-                                   min=0, max=99)
     control_cpu: int = param(-1, "loop_process: pin the control process (all its threads) to this CPU "
                              "(os.sched_setaffinity, like ros2_control's cpu_affinity); -1 = any CPU. A CPU "
                              "the machine does not have -> a warning, not pinned.", min=-1, max=1023)
@@ -76,27 +72,10 @@ class ServerConfig:
     velocity_scale: float = param(1.0, "Fraction of the robot's velocity limits used.", min=1e-3, max=1.0)
     acceleration_scale: float = param(1.0, "Fraction of the robot's acceleration limits used.", min=1e-3, max=1.0)
     jerk_scale: float = param(1.0, "Fraction of the robot's jerk limits used.", min=1e-3, max=1.0)
-    position_margin: float = param(0.01, "Targets are kept this far inside the URDF position limits.",
-                                   min=0.0, max=0.5, unit="rad")
-    tracking_horizon: float = param(0.01, "Look-ahead of the Ruckig tracking of the primitive.",
-                                    min=0.001, max=0.5, unit="s")
-    lookahead_ticks: int = param(30, "The command stream is computed this many control periods ahead; the "
-                                 "JointTrajectory messages carry these future samples (and the reaction time "
-                                 "to cancel / SetPhaseRate / a new goal is this long).", min=1, max=2000)
-    approach_tolerance: float = param(0.01, "Farther than this (max over joints) from the primitive's start, "
-                                      "the robot first moves to the start (time-optimal, within limits) and "
-                                      "then starts the phase clock.", min=0.0, max=10.0, unit="rad")
     execution_grid_points: int = param(4001, "The executed mean trajectory is decoded once per Execute on this "
                                        "many phases and interpolated at every control tick.", min=101, max=200001)
     derivative_step: float = param(0.005, "Phase step of the central differences that give the reference "
                                    "velocity and acceleration from the decoded grid.", min=1e-4, max=0.1)
-    phase_rate_ramp_time: float = param(0.2, "SetPhaseRate changes the phase rate linearly over this time "
-                                        "(continuous phase velocity).", min=0.0, max=60.0, unit="s")
-    stale_timeout: float = param(0.2, "No joint_states for this long: execution stops (brakes) with "
-                                 "ROBOT_STATE_STALE; Execute is refused if the last message is older.",
-                                 min=0.001, max=60.0, unit="s")
-    max_tracking_error: float = param(0.0, "Abort with LIMIT_VIOLATION (braking) when |commanded - measured| "
-                                      "exceeds this on any joint; 0 = no bound.", min=0.0, max=10.0, unit="rad")
     check_feasibility: bool = param(True, "Refuse Execute / SetPhaseRate (LIMIT_VIOLATION) when the mean "
                                     "trajectory leaves the position limits or needs more than the velocity "
                                     "limits at the requested phase rate.")
@@ -110,9 +89,6 @@ class ServerConfig:
                             "'<controller>/joint_trajectory'; '' = no JointTrajectory output.")
     command_topic: str = param("joint_command", "sensor_msgs/JointState per control tick (names, positions, "
                                "velocities in the robot's joint order; what sim_bridge follows); '' = off.")
-    trajectory_rate_hz: float = param(50.0, "Rate of JointTrajectory messages.", min=1.0, max=1000.0, unit="Hz")
-    trajectory_points: int = param(3, "Points of the look-ahead in each JointTrajectory message (evenly spaced "
-                                    "over lookahead_ticks); a braking tail to rest follows them.", min=1, max=100)
     trajectory_stamp: str = param("now", "header.stamp of JointTrajectory messages: 'now' (the time of the "
                                   "first sample, exact timing) or 'zero' (start on receipt).",
                                   choices=("now", "zero"))
@@ -146,9 +122,6 @@ class ServerConfig:
     refine_tolerance: float = param(1e-6, "Default refinement tolerance on the via-point error.",
                                     min=1e-12, max=1.0, unit="rad")
     max_cycles: int = param(100000, "Largest Execute.cycles accepted (rhythmic primitives).", min=1, max=10**9)
-
-    def __post_init__(self):
-        params.validate(self)
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> "ServerConfig":
