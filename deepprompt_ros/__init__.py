@@ -12,8 +12,8 @@ Subpackages, by concept (imports run one way, from the top of this list down to 
   model       the network, Bayesian aggregation, phase features, checkpoints
   primitive   DeepProMP operations: condition, decode, sample, blend, refine, time maps
   training    training configuration, objectives, the loop, basis initialization
+  evaluation  reconstruction metrics used by the experiments and by ProMP's validation
   baselines   ProMP, CNMP, VAE-CNMP and their Indep variants behind one interface
-  evaluation  reconstruction metrics used by the experiments
   data        demonstration format, I/O, synthetic families, built-in datasets
   robots      robot specs from URDF, kinematics, inverse kinematics, geometry
   sim         the PyBullet simulation and the task-data generators (sim.tasks)
@@ -30,10 +30,10 @@ __version__ = "0.1.0"
 
 _EXPORTS = {
     # model, training and operations
-    "ModelConfig": "model.network", "DeepProMPNet": "model.network", "bayesian_aggregate": "model.network",
-    "TrainConfig": "training.loop",
-    "DeepProMP": "primitive.deep_promp", "LatentGaussian": "primitive.deep_promp",
-    "RefinementResult": "primitive.deep_promp",
+    "ModelConfig": "model.network", "DeepProMPNet": "model.network", "bayesian_aggregate": "model.aggregation",
+    "TrainConfig": "training.config",
+    "DeepProMP": "primitive.deep_promp", "LatentGaussian": "primitive.latent",
+    "RefinementResult": "primitive.refinement",
     "load_checkpoint": "model.checkpoint", "save_checkpoint": "model.checkpoint",
     "CheckpointError": "model.checkpoint",
     "LinearTimeMap": "primitive.time_maps", "MonotoneTimeMap": "primitive.time_maps",

@@ -34,7 +34,7 @@ import numpy as np
 
 from deepprompt_ros.data.demo_dataset import DemoDataset
 from deepprompt_ros.data.synthetic import bimodal_sine
-from deepprompt_ros.training.loop import TrainConfig
+from deepprompt_ros.training.config import TrainConfig
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 MODELS = ROOT / "models"

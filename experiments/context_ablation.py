@@ -12,8 +12,8 @@ into the data cache on first use, ~15-45 s each) with the experiments' training 
 ``--set p_low_info=0.3 --set low_info_fraction=0.05``) and prints, as JSON, the held-out MSE (rad²,
 100 phases, conditioned mean) for: first point + context (the paper's Low Dim), context alone, first
 point alone, first point with importance weight 0.1, context with weight 10, nothing (the prior),
-the whole trajectory and 5 random via-points (``core.baselines.reconstruction_mse``), Image and
-Image+Low where the task has images — and the mean posterior variance of z for one test demo given
+the whole trajectory and 5 random via-points
+(``deepprompt_ros.evaluation.reconstruction.reconstruction_mse``), Image and Image+Low where the task has images — and the mean posterior variance of z for one test demo given
 the first point, the context, and both (the prior's is 1).
 """
 from __future__ import annotations
@@ -38,7 +38,8 @@ import torch  # noqa: E402
 import yaml  # noqa: E402
 
 from experiments import common  # noqa: E402
-from deepprompt_ros.baselines.models import DeepProMPModel, reconstruction_mse  # noqa: E402
+from deepprompt_ros.baselines.deep_promp_model import DeepProMPModel  # noqa: E402
+from deepprompt_ros.evaluation.reconstruction import reconstruction_mse  # noqa: E402
 
 
 def ablation(task: str, steps: int = 2000, seed: int = 0, overrides: dict | None = None) -> dict:

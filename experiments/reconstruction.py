@@ -1,6 +1,6 @@
 """Experiment 1 — reconstruction of held-out demonstrations (paper Sec. IV, radar-plot figure).
 
-For every task, model (:data:`core.baselines.MODEL_CLASSES`) and seed: train on the task's training
+For every task, model (:data:`deepprompt_ros.baselines.registry.MODEL_CLASSES`) and seed: train on the task's training
 demonstrations (best validation weights kept), then reconstruct each test demonstration from
 
 ``via_point``   the full trajectory as via-points (the paper's "Via Point"),
@@ -10,7 +10,8 @@ demonstrations (best validation weights kept), then reconstruct each test demons
 ``aggregate``   the mean of the above that the model and the data support,
 
 (the first point is "the initial robot position included with each context", as in the paper), with
-:func:`core.baselines.reconstruction_mse` (decoded mean vs demo on 100 phases, rad²). An extra
+:func:`deepprompt_ros.evaluation.reconstruction.reconstruction_mse` (decoded mean vs demo on 100
+phases, rad²). An extra
 column, ``via_5`` (5 random via-points per demo, the same for every model), is not in the paper and
 not in the aggregate: it is the deployment case the models were trained for.
 
@@ -30,9 +31,11 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from deepprompt_ros.baselines.models import MODEL_CLASSES, ProMPModel, available_conditionings, reconstruction_mse
+from deepprompt_ros.baselines.promp_model import ProMPModel
+from deepprompt_ros.baselines.registry import MODEL_CLASSES
+from deepprompt_ros.evaluation.reconstruction import available_conditionings, reconstruction_mse
 from deepprompt_ros.data.demo_dataset import DemoDataset
-from deepprompt_ros.training.loop import TrainConfig
+from deepprompt_ros.training.config import TrainConfig
 
 from . import common
 from .common import Scale, TaskData

@@ -1,7 +1,7 @@
 """Experiment 2 — deployment-time refinement (paper appendix, figure "post-processing optimization").
 
 A trained DeepProMP is asked to pass through N = 1, 5, 50 via-points taken from held-out
-demonstrations (``refine_sets`` sets per N). :meth:`core.primitive.DeepProMP.refine` starts either
+demonstrations (``refine_sets`` sets per N). :meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.refine` starts either
 at the model's posterior q(z | via-points) ("posterior") or at the prior N(0, I) ("prior"); the
 curve is the max via-point error of the executed trajectory μ_y(μ̃, x) (rad) against the iteration
 budget, mean ± standard error over the sets, log y.

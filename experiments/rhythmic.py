@@ -21,7 +21,7 @@ from typing import Callable
 
 import numpy as np
 
-from deepprompt_ros.baselines.models import ProMPModel
+from deepprompt_ros.baselines.promp_model import ProMPModel
 from deepprompt_ros.data.builtin import wam_shake
 from deepprompt_ros.primitive.deep_promp import DeepProMP
 
@@ -36,7 +36,8 @@ def load_primitive(scale: Scale, log: Callable[[str], None] = print) -> tuple[De
     path = common.MODELS / "wam_shake.safetensors"
     if path.is_file():
         return DeepProMP.from_checkpoint(str(path)), str(path.relative_to(common.ROOT))
-    from deepprompt_ros.training.loop import TrainConfig, train
+    from deepprompt_ros.training.config import TrainConfig
+    from deepprompt_ros.training.loop import train
 
     cfg = TrainConfig.from_yaml(common.ROOT / "config" / "train_wam_shake.yaml")
     cfg = dataclasses.replace(cfg, steps=scale.rhythmic_train_steps, threads=1,

@@ -2,7 +2,8 @@
 
 DeepProMP and ProMP are trained on ``n_train`` demonstrations (both hold out the same 10 % for
 validation) and reconstruct held-out demonstrations from ``n_via`` random via-points per demo
-(:func:`core.baselines.reconstruction_mse` with ``n_via``: the same seeded points for every model):
+(:func:`deepprompt_ros.evaluation.reconstruction.reconstruction_mse` with ``n_via``: the same seeded
+points for every model):
 
 ``promp``                ProMP conditioned on the via-points (closed form)
 ``deepprompt``           DeepProMP decoded at the posterior mean q(z | via-points)
@@ -40,9 +41,12 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from deepprompt_ros.baselines.models import DeepProMPModel, ProMPModel, reconstruction_mse
+from deepprompt_ros.baselines.deep_promp_model import DeepProMPModel
+from deepprompt_ros.baselines.promp_model import ProMPModel
+from deepprompt_ros.evaluation.reconstruction import reconstruction_mse
 from deepprompt_ros.data.demo_dataset import DemoDataset
-from deepprompt_ros.training.loop import TrainConfig, cv_basis_hyperparameters, fold_assignment
+from deepprompt_ros.training.basis import cv_basis_hyperparameters, fold_assignment
+from deepprompt_ros.training.config import TrainConfig
 
 from . import common
 from .common import Scale
@@ -146,8 +150,8 @@ def refined_mse(model: DeepProMPModel, test: DemoDataset, n_via: int, n_points: 
     """(MSE after refinement, MSE before, fraction of demos refined within 1e-6 rad).
 
     Via-points: ``np.random.default_rng([seed, i]).choice(n_points, n_via, replace=False)`` for demo i —
-    the rule of :func:`core.baselines.reconstruction_mse`; the returned MSE-before equals its value
-    (a test checks it)."""
+    the rule of :func:`deepprompt_ros.evaluation.reconstruction.reconstruction_mse`; the returned
+    MSE-before equals its value (a test checks it)."""
     prim = model.primitive
     x = np.linspace(0.0, 1.0, n_points)
     after, before, ok = [], [], []
@@ -240,7 +244,7 @@ def small_data(train_config: TrainConfig, data: tuple[DemoDataset, DemoDataset] 
     map_prior, map_noise_factors : MAP refinement (row ``deepprompt_map``): its prior and the noise
         factors f tried on the validation demos of each seed's training split (the best is used on the test demos)
     cv_grid : if given (keys ``latent_dims``, ``cov_regs``, ``noise_stds``, optional ``folds``, ``draws``;
-        :func:`core.train.cv_basis_hyperparameters`), the latent size, ``basis_cov_reg`` and the MAP
+        :func:`deepprompt_ros.training.basis.cv_basis_hyperparameters`), the latent size, ``basis_cov_reg`` and the MAP
         via-point noise (rad) are chosen by cross-validation of the decoder's linear part on the
         training demos ``train`` (all of them; never the test demos), once for all seeds, and replace
         ``train_config``'s values and ``map_noise_factors``
@@ -324,8 +328,8 @@ def unit_context(train_ds: DemoDataset, test_ds: DemoDataset) -> dict:
 
 
 def cv_unit(shared: dict, n_points: int, decoder_basis: int, basis_width: float, n_via: int, cv_grid: dict) -> dict:
-    """The cross-validation unit: :func:`core.train.cv_basis_hyperparameters` on ``shared["train"]``, with
-    its wall time (``wall_time_s``)."""
+    """The cross-validation unit: :func:`deepprompt_ros.training.basis.cv_basis_hyperparameters` on
+    ``shared["train"]``, with its wall time (``wall_time_s``)."""
     t0 = time.perf_counter()
     cv = cv_basis_hyperparameters(shared["train"], n_points, decoder_basis, basis_width, n_via=n_via, **cv_grid)
     cv["wall_time_s"] = time.perf_counter() - t0
@@ -446,8 +450,9 @@ RESIDUAL_CONFIG = dict(decoder_basis=20, latent_dim=64, basis_init="pca", basis_
                        residual_scale=0.1)
 # run() replaces RESIDUAL_CONFIG's latent_dim, basis_cov_reg and basis_cov_reg_units, and the MAP noise, by
 # leave-one-out cross-validation of the linear part on the training demos over this grid
-# (core.train.cv_basis_hyperparameters; 140 = 20 RBFs x 7 joints, the full weight space), and keeps the trained
-# MLP residual only where it beats "residual off" by more than one standard error (residual_select, keep_residual)
+# (deepprompt_ros.training.basis.cv_basis_hyperparameters; 140 = 20 RBFs x 7 joints, the full weight space),
+# and keeps the trained MLP residual only where it beats "residual off" by more than one standard error
+# (residual_select, keep_residual)
 CV_GRID = dict(latent_dims=(32, 64, 140), cov_regs=(0.0, 0.01, 0.02, 0.05, 0.1, 0.2),
                noise_stds=(3e-4, 1e-3, 3e-3, 1e-2, 3e-2), folds=0, draws=4, cov_reg_units=("normalized", "raw"))
 # ... judged by RESIDUAL_FOLDS-fold cross-validation of the residual on the training demos (residual_cv_errors)

@@ -7,10 +7,15 @@ import numpy as np
 import pytest
 import torch
 
-from deepprompt_ros.baselines import models as bl
+from deepprompt_ros.baselines.concat import CNMP, VAECNMP, CNMPIndep, VAECNMPIndep, _kinds
+from deepprompt_ros.baselines.interface import InputSpec, MovementPrimitiveModel
+from deepprompt_ros.baselines.promp_model import ProMPModel
+from deepprompt_ros.baselines.registry import MODEL_CLASSES, load_model
 from deepprompt_ros.data.demo_dataset import DemoDataset
 from deepprompt_ros.data.demonstration import Demonstration
-from deepprompt_ros.training.loop import TrainConfig, fit_normalization, to_tensors
+from deepprompt_ros.evaluation.reconstruction import available_conditionings, reconstruction_mse, reconstruction_table
+from deepprompt_ros.training.config import TrainConfig
+from deepprompt_ros.training.tensors import fit_normalization, to_tensors
 
 torch.set_num_threads(1)
 
@@ -50,14 +55,14 @@ CFG = TrainConfig(latent_dim=8, hidden=64, steps=300, val_every=100, n_points=N_
 _FITTED: dict = {}
 
 
-def fitted(cls) -> bl.MovementPrimitiveModel:
+def fitted(cls) -> MovementPrimitiveModel:
     """Each model class trained once per test session (300 updates; ProMP is closed form)."""
     if cls not in _FITTED:
         _FITTED[cls] = cls().fit(TRAIN, CFG, VAL)
     return _FITTED[cls]
 
 
-@pytest.fixture(params=bl.MODEL_CLASSES, ids=[c.kind for c in bl.MODEL_CLASSES])
+@pytest.fixture(params=MODEL_CLASSES, ids=[c.kind for c in MODEL_CLASSES])
 def model(request):
     return fitted(request.param)
 
@@ -89,7 +94,7 @@ def test_via_points_reduce_reconstruction_error(model):
     unconditioned = _mse(model)
     if model.independent_inputs:
         # via-points alone (the paper's "Via Point" metric: the full trajectory as via-points)
-        err = bl.reconstruction_mse(model, TEST, "via_point", n_points=N_POINTS)
+        err = reconstruction_mse(model, TEST, "via_point", n_points=N_POINTS)
     else:
         # CNMP / VAE-CNMP always get via-points AND every context (their training distribution)
         err = _mse(model, **ALL_VIA, **_all_contexts(model))
@@ -98,9 +103,9 @@ def test_via_points_reduce_reconstruction_error(model):
 
 def test_context_conditioning_predicts_the_goal(model):
     unconditioned = _mse(model)
-    richest = bl.available_conditionings(model, TEST)[-1]
+    richest = available_conditionings(model, TEST)[-1]
     assert richest == ("low_dim" if model.kind == "promp" else "image+low")
-    err = bl.reconstruction_mse(model, TEST, richest, n_points=N_POINTS)
+    err = reconstruction_mse(model, TEST, richest, n_points=N_POINTS)
     assert err < 0.5 * unconditioned, (err, unconditioned)
     # q1(0.5) = c1 + c2/4: the goal's first coordinate moves the first joint at mid-phase
     rng = np.random.default_rng(5)
@@ -117,7 +122,7 @@ def test_context_conditioning_predicts_the_goal(model):
 def test_save_load_round_trip_gives_identical_predictions(model, tmp_path):
     path = model.save(tmp_path / f"{model.kind}.safetensors")
     assert path.read_bytes()[8:9] == b"{"  # a safetensors JSON header, not a pickle
-    for loaded in (type(model).load(path), bl.load_model(path)):
+    for loaded in (type(model).load(path), load_model(path)):
         assert type(loaded) is type(model)
         assert loaded.joint_names == model.joint_names and loaded.context_dims == model.context_dims
         d = TEST.demos[0]
@@ -129,7 +134,7 @@ def test_save_load_round_trip_gives_identical_predictions(model, tmp_path):
             a, b = model.condition(**kw), loaded.condition(**kw)
             np.testing.assert_array_equal(loaded.mean_trajectory(b, X), model.mean_trajectory(a, X))
             np.testing.assert_array_equal(loaded.sample(b, X, 3, rng=7), model.sample(a, X, 3, rng=7))
-    other = bl.VAECNMP if model.kind != "vae_cnmp" else bl.CNMP
+    other = VAECNMP if model.kind != "vae_cnmp" else CNMP
     with pytest.raises(ValueError, match="model file|format"):
         other.load(path)
 
@@ -188,14 +193,14 @@ def test_zero_padding_training_is_what_makes_via_point_only_conditioning_work():
     """Paper Sec. IV: "the zero padding training is crucial for improving baselines' ability to do
     via-point conditioning". Trained on every update with all inputs, the plain models see a
     zero-padded context at evaluation for the first time."""
-    for plain, indep in ((bl.CNMP, bl.CNMPIndep), (bl.VAECNMP, bl.VAECNMPIndep)):
-        e_plain = bl.reconstruction_mse(fitted(plain), TEST, "via_point", n_points=N_POINTS)
-        e_indep = bl.reconstruction_mse(fitted(indep), TEST, "via_point", n_points=N_POINTS)
+    for plain, indep in ((CNMP, CNMPIndep), (VAECNMP, VAECNMPIndep)):
+        e_plain = reconstruction_mse(fitted(plain), TEST, "via_point", n_points=N_POINTS)
+        e_indep = reconstruction_mse(fitted(indep), TEST, "via_point", n_points=N_POINTS)
         assert e_indep < 0.6 * e_plain, (plain.kind, e_indep, e_plain)
 
 
 def test_missing_inputs_are_zero_padded_in_the_concatenated_element():
-    m = fitted(bl.CNMPIndep)
+    m = fitted(CNMPIndep)
     net, norm = m.net, m.norm
     d = TEST.demos[0]
     y = d.resampled(N_POINTS)
@@ -226,14 +231,14 @@ def test_missing_inputs_are_zero_padded_in_the_concatenated_element():
 def test_input_subsampling_plain_always_all_inputs_indep_all_combinations():
     norm = fit_normalization(TRAIN, N_POINTS)
     data = to_tensors(TRAIN, norm, N_POINTS)
-    kinds = bl._kinds(data)
+    kinds = _kinds(data)
     assert [k for k, _ in kinds] == ["via", "goal", "image"]
     idx = torch.arange(len(TRAIN)).repeat(40)  # 2000 draws
-    w_plain = bl.CNMP().input_weights(CFG, data, idx, kinds, torch.Generator().manual_seed(0))
+    w_plain = CNMP().input_weights(CFG, data, idx, kinds, torch.Generator().manual_seed(0))
     n_via = w_plain[:, :N_POINTS].sum(1)
     assert n_via.min() >= 1 and n_via.max() <= CFG.max_via_points
     assert (w_plain[:, N_POINTS:] == 1).all()  # the goal and the images, every time
-    w = bl.CNMPIndep().input_weights(CFG, data, idx, kinds, torch.Generator().manual_seed(0))
+    w = CNMPIndep().input_weights(CFG, data, idx, kinds, torch.Generator().manual_seed(0))
     via, goal, image = (w[:, :N_POINTS].sum(1) > 0), w[:, N_POINTS] > 0, w[:, N_POINTS + 1] > 0
     assert w[:, :N_POINTS].sum(1).max() <= CFG.max_via_points
     combos = {(a, b, c): float(((via == a) & (goal == b) & (image == c)).float().mean())
@@ -244,7 +249,7 @@ def test_input_subsampling_plain_always_all_inputs_indep_all_combinations():
 
 
 def test_fit_keeps_the_best_validation_weights():
-    for cls in (bl.CNMP, bl.VAECNMPIndep):
+    for cls in (CNMP, VAECNMPIndep):
         m = fitted(cls)
         vals = [h["val"]["mean"] for h in m.history]
         assert [h["step"] for h in m.history] == [100, 200, 300]
@@ -254,7 +259,7 @@ def test_fit_keeps_the_best_validation_weights():
 
 
 def test_cnmp_predicts_its_output_std_and_samples_it():
-    m = fitted(bl.CNMPIndep)
+    m = fitted(CNMPIndep)
     cond = m.condition(contexts=TEST.demos[0].contexts)
     std = m.std_trajectory(cond, X)
     assert std.shape == (N_POINTS, 2) and (std >= m.std_floor * m.norm.y_std - 1e-9).all()
@@ -264,14 +269,14 @@ def test_cnmp_predicts_its_output_std_and_samples_it():
 
 
 def test_promp_adapter_needs_all_context_modalities_and_no_images():
-    m = fitted(bl.ProMPModel)
-    assert bl.available_conditionings(m, TEST) == ("via_point", "low_dim")
+    m = fitted(ProMPModel)
+    assert available_conditionings(m, TEST) == ("via_point", "low_dim")
     with pytest.raises(ValueError, match="not available for model 'promp'"):
-        bl.reconstruction_mse(m, TEST, "image")
+        reconstruction_mse(m, TEST, "image")
 
 
 # ------------------------------------------------------------------ the metric's definition
-class _Recorder(bl.MovementPrimitiveModel):
+class _Recorder(MovementPrimitiveModel):
     """Predicts zeros and records what it was conditioned on."""
 
     kind = "recorder"
@@ -303,10 +308,10 @@ class _Recorder(bl.MovementPrimitiveModel):
 
 def test_reconstruction_mse_follows_the_papers_definition():
     test = DemoDataset(TEST.demos[:3], "tiny")
-    rec = _Recorder(bl.InputSpec.from_dataset("recorder", test))
+    rec = _Recorder(InputSpec.from_dataset("recorder", test))
     truth = np.mean([(d.resampled(N_POINTS) ** 2).mean() for d in test.demos])  # zeros predicted
     # "Via Point": the full trajectory as via-points, no context
-    assert bl.reconstruction_mse(rec, test, "via_point", n_points=N_POINTS) == pytest.approx(truth, rel=1e-12)
+    assert reconstruction_mse(rec, test, "via_point", n_points=N_POINTS) == pytest.approx(truth, rel=1e-12)
     for call, d in zip(rec.calls, test.demos):
         np.testing.assert_array_equal(call.via_x, X)
         np.testing.assert_array_equal(call.via_y, d.resampled(N_POINTS))
@@ -315,7 +320,7 @@ def test_reconstruction_mse_follows_the_papers_definition():
     sets = []
     for _ in range(2):
         rec.calls.clear()
-        bl.reconstruction_mse(rec, test, "via_point", n_via=5, n_points=N_POINTS, seed=3)
+        reconstruction_mse(rec, test, "via_point", n_via=5, n_points=N_POINTS, seed=3)
         sets.append([c.via_x for c in rec.calls])
     for a, b in zip(*sets):
         np.testing.assert_array_equal(a, b)
@@ -325,24 +330,24 @@ def test_reconstruction_mse_follows_the_papers_definition():
     expect = {"image": (False, True), "low_dim": (True, False), "image+low": (True, True)}
     for name, (low, img) in expect.items():
         rec.calls.clear()
-        assert bl.reconstruction_mse(rec, test, name, n_points=N_POINTS) == pytest.approx(truth, rel=1e-12)
+        assert reconstruction_mse(rec, test, name, n_points=N_POINTS) == pytest.approx(truth, rel=1e-12)
         for call, d in zip(rec.calls, test.demos):
             np.testing.assert_array_equal(call.via_x, [0.0])
             np.testing.assert_array_equal(call.via_y, d.resampled(N_POINTS)[:1])
             assert (call.contexts == {"goal": d.contexts["goal"]}) if low else call.contexts == {}
             assert (call.images is d.images) if img else call.images is None
     rec.calls.clear()
-    assert bl.reconstruction_mse(rec, test, "aggregate", n_points=N_POINTS) == pytest.approx(truth, rel=1e-12)
+    assert reconstruction_mse(rec, test, "aggregate", n_points=N_POINTS) == pytest.approx(truth, rel=1e-12)
     assert len(rec.calls) == 4 * len(test)
     with pytest.raises(ValueError, match="unknown; expected one of"):
-        bl.reconstruction_mse(rec, test, "velocity")
+        reconstruction_mse(rec, test, "velocity")
     with pytest.raises(ValueError, match="n_via must be None"):
-        bl.reconstruction_mse(rec, test, "via_point", n_via=0)
+        reconstruction_mse(rec, test, "via_point", n_via=0)
 
 
 def test_reconstruction_table_on_a_tiny_case():
-    m = fitted(bl.ProMPModel)
-    table = bl.reconstruction_table(m, TEST, n_points=N_POINTS)
+    m = fitted(ProMPModel)
+    table = reconstruction_table(m, TEST, n_points=N_POINTS)
     assert set(table) == {"via_point", "low_dim", "aggregate"}
     # the data are linear in the goal and smooth: closed-form conditioning reconstructs them to
     # about the noise level (0.01² rad²) from the full trajectory, and nearly so from the goal alone
@@ -360,9 +365,9 @@ def test_pickle_files_are_refused_and_never_executed(tmp_path):
     evil = tmp_path / "evil.safetensors"
     with open(evil, "wb") as f:
         pickle.dump({"state_dict": _Evil()}, f)
-    for load in (bl.load_model, bl.CNMP.load, bl.ProMPModel.load):
+    for load in (load_model, CNMP.load, ProMPModel.load):
         with pytest.raises(ValueError, match="not a safetensors file"):
             load(evil)
     with pytest.raises(ValueError, match="does not exist"):
-        bl.load_model(tmp_path / "missing.safetensors")
+        load_model(tmp_path / "missing.safetensors")
     assert not _Evil.marker.exists()

@@ -18,7 +18,7 @@ import torch
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from deepprompt_ros.baselines.models import MODEL_CLASSES  # noqa: E402
+from deepprompt_ros.baselines.registry import MODEL_CLASSES  # noqa: E402
 from deepprompt_ros.data.demo_dataset import DemoDataset  # noqa: E402
 from deepprompt_ros.data.demonstration import Demonstration  # noqa: E402
 from experiments import common, reconstruction  # noqa: E402
@@ -120,7 +120,7 @@ def test_small_data_numbers_are_consistent(tiny_run):
     assert res["n_train"] == 30 and res["n_joints"] == 7 and res["n_via"] == 5
     for m, v in res["mse"].items():
         assert len(v) == 1 and all(_finite_pos(x) for x in v), m
-    # this module's via-point loop picks the same points as core.baselines.reconstruction_mse
+    # this module's via-point loop picks the same points as deepprompt_ros.evaluation.reconstruction.reconstruction_mse
     np.testing.assert_allclose(res["check"], res["mse"]["deepprompt"], rtol=1e-9)
     # ProMP conditioned on 5 points beats its start-point-only conditioning
     assert res["mse"]["promp"][0] < res["mse"]["promp_start"][0]
@@ -161,7 +161,7 @@ def test_the_residual_is_kept_only_beyond_one_standard_error():
 
 
 def test_residual_cross_validation_holds_out_every_training_demo_once():
-    from deepprompt_ros.training.loop import TrainConfig
+    from deepprompt_ros.training.config import TrainConfig
     from experiments.small_data import RESIDUAL_CONFIG, default_data, residual_cv_errors
 
     train, _ = default_data(12, 2)

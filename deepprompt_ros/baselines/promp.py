@@ -17,6 +17,12 @@ linear regression of w on c). Internally the model keeps ONE Gaussian over the s
 [w; c]; via-point conditioning updates the context part too.
 
 All operations (``condition``, ``condition_context``, ``blend``) return new objects.
+
+One concept in one module (past ~400 lines on purpose): the class is the ProMP, and its basis,
+fit, trajectory distribution, conditioning, blending, file format and input checks all read and
+write one internal representation — the Gaussian over [w; c] with its covariance kept as a matrix
+minus a pending low-rank factor (``_cov_mat - _cov_qᵀ _cov_q``) and cached per-joint blocks.
+Splitting them would spread that invariant over several files.
 """
 from __future__ import annotations
 
@@ -26,6 +32,8 @@ from pathlib import Path
 from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
+
+from deepprompt_ros.common.joints import joint_list_text
 
 __all__ = ["ProMP", "TrajectoryDistribution"]
 
@@ -679,10 +687,6 @@ class ProMP:
                              f"normalized time")
         return x
 
-    def _joint_list(self) -> str:
-        names = self.joint_names
-        return ", ".join(names) if len(names) <= 4 else f"{names[0]}..{names[-1]}"
-
     def _check_via(self, x_via, y_via, joint_mask):
         d = self.n_joints
         x_via = self._check_phase(x_via, "x_via")
@@ -695,7 +699,7 @@ class ProMP:
                              f"got {y.shape}")
         if y.shape[1] != d:
             raise ValueError(f"via-points have {y.shape[1]} joint values; this ProMP has {d} "
-                             f"joints: {self._joint_list()}")
+                             f"joints: {joint_list_text(self.joint_names)}")
         if joint_mask is None:
             mask = np.ones((V, d), dtype=bool)
         else:
@@ -745,7 +749,7 @@ class ProMP:
                 raise ValueError(f"demonstration {i} has shape {Yi.shape}; expected (T >= 1, {d})")
             if Yi.shape[1] != d:
                 raise ValueError(f"demonstration {i} has {Yi.shape[1]} joints; this ProMP has {d}: "
-                                 f"{self._joint_list()}")
+                                 f"{joint_list_text(self.joint_names)}")
             if not np.all(np.isfinite(Yi)):
                 t, j = np.argwhere(~np.isfinite(Yi))[0]
                 raise ValueError(f"demonstration {i} has value {Yi[t, j]} at sample {t} for "

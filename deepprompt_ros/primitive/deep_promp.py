@@ -214,7 +214,10 @@ class DeepProMP:
 
     @staticmethod
     def aggregate(mu: np.ndarray, var: np.ndarray, w: np.ndarray) -> LatentGaussian:
-        """σ²_z = (1 + Σ ω_i/σ²_i)^-1, μ_z = σ²_z Σ ω_i μ_i/σ²_i (paper Eq. 1 and 3; mu, var (n, k); w (n,))."""
+        """σ²_z = (1 + Σ ω_i/σ²_i)^-1, μ_z = σ²_z Σ ω_i μ_i/σ²_i (paper Eq. 1 and 3).
+
+        mu, var : array, shape (n, k); w : array, shape (n,).
+        """
         return LatentGaussian(*bayesian_aggregate(mu, var, w))
 
     # ------------------------------------------------------------------ decoding

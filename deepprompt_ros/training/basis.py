@@ -28,7 +28,8 @@ def pca_basis(phi: np.ndarray, y: np.ndarray, latent_dim: int, cov_reg: float = 
 
     The regularizer R (``basis_cov_reg_units``): with ``joint_std`` None, R = λI in the normalized
     units of ``y``, λ = ``cov_reg`` · mean(diag C); with ``joint_std`` (d,) — the joints' normalization
-    standard deviations, rad — R is λI in rad, ProMP's regularizer (:meth:`deepprompt_ros.baselines.promp.ProMP.fit`):
+    standard deviations, rad — R is λI in rad, ProMP's regularizer
+    (:meth:`deepprompt_ros.baselines.promp.ProMP.fit`):
     R = λ D⁻², D = diag(std of each row's joint), λ = ``cov_reg`` · mean(diag DCD). The two differ when
     the joints' ranges differ: in normalized units a small-range joint gets as much extra variance as a
     large-range one, in rad as much in absolute terms.

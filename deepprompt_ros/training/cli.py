@@ -29,7 +29,8 @@ def main(argv=None) -> int:
     src = ap.add_mutually_exclusive_group(required=True)
     src.add_argument("--data", help="dataset folder of .npz/.csv demonstrations (see deepprompt_ros.data.demo_dataset)")
     src.add_argument("--builtin", help="built-in generated dataset: bimodal_sine | rhythmic_shake | wam_shake | "
-                     "gen3_lite_reach, or a PyBullet task (deepprompt_ros.sim.tasks; full sets take minutes to generate): "
+                     "gen3_lite_reach, or a PyBullet task (deepprompt_ros.sim.tasks; full sets take minutes to "
+                     "generate): "
                      "reach | close_box | pour | kinova_pick_place")
     ap.add_argument("--config", help="training YAML (keys of TrainConfig); defaults if omitted")
     ap.add_argument("--out", required=True, help="output checkpoint path (.safetensors)")
