@@ -26,7 +26,8 @@ from deepprompt_ros.data.synthetic import bimodal_sine  # noqa: E402
 from deepprompt_ros.primitive.deep_promp import DeepProMP  # noqa: E402
 from deepprompt_ros.baselines.promp import ProMP  # noqa: E402
 from deepprompt_ros.sim.tasks.kinematic_reach import reach_demos  # noqa: E402
-from deepprompt_ros.training.loop import TrainConfig, train  # noqa: E402
+from deepprompt_ros.training.config import TrainConfig  # noqa: E402
+from deepprompt_ros.training.loop import train  # noqa: E402
 
 
 def timed(fn, repeats: int) -> list[float]:
