@@ -25,6 +25,7 @@ so a consumer can see the gap). The robot state is read from the node's subscrip
 from __future__ import annotations
 
 import collections
+import dataclasses
 import math
 import threading
 import time
@@ -38,6 +39,33 @@ from deepprompt_ros.execution.controller import (ExecutionController, ExecutionG
 from deepprompt_ros.execution.settings import LoopSettings
 
 __all__ = ["StreamLoop", "LoopStats"]
+
+
+# The commands other threads queue for the control thread (applied at the start of its next tick, in
+# the order they were queued).
+@dataclasses.dataclass(frozen=True)
+class _Start:
+    """Start ``goal``; it preempts the running one."""
+
+    goal: ExecutionGoal
+
+
+@dataclasses.dataclass(frozen=True)
+class _Cancel:
+    """Brake ``goal`` to rest if it runs."""
+
+    goal: ExecutionGoal
+
+
+@dataclasses.dataclass(frozen=True)
+class _SetRate:
+    """Phase rate ``rate`` for ``goal`` if it runs."""
+
+    goal: ExecutionGoal
+    rate: float
+
+
+_Command = _Start | _Cancel | _SetRate
 
 
 class LoopStats:
@@ -123,7 +151,7 @@ class StreamLoop:
         self._poll = poll_measured
         self._thread_setup = thread_setup or (lambda name, fifo_priority: "")
         self._measured: MeasuredState | None = None
-        self._commands: collections.deque = collections.deque()
+        self._commands: collections.deque[_Command] = collections.deque()
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -155,12 +183,12 @@ class StreamLoop:
 
     def execute(self, goal: ExecutionGoal) -> ExecutionGoal:
         """Queue ``goal``; it preempts the running one at the next tick."""
-        self._commands.append(("start", goal))
+        self._commands.append(_Start(goal))
         self._wake.set()
         return goal
 
     def cancel(self, goal: ExecutionGoal) -> None:
-        self._commands.append(("cancel", goal))
+        self._commands.append(_Cancel(goal))
 
     def set_rate(self, rate: float) -> ExecutionGoal:
         """Change the running goal's phase rate; RequestError(NO_ACTIVE_EXECUTION) when none runs."""
@@ -174,7 +202,7 @@ class StreamLoop:
     def set_goal_rate(self, goal: ExecutionGoal, rate: float) -> None:
         """Queue a phase-rate change of ``goal``: applied at the next tick if ``goal`` then runs (after
         the goals queued before it have started), ignored otherwise."""
-        self._commands.append(("rate", goal, float(rate)))
+        self._commands.append(_SetRate(goal, float(rate)))
 
     def summary(self) -> str:
         """One line about the loop so far (ticks, late ticks, longest tick, CPU per tick, pacing)."""
@@ -201,13 +229,13 @@ class StreamLoop:
             except Exception as exc:  # a publisher failure must not stop the loop
                 self._on_error(f"command publish failed: {exc!r}")
         while self._commands:
-            cmd = self._commands.popleft()
-            if cmd[0] == "start":
-                ctl.start_goal(cmd[1], measured)
-            elif cmd[0] == "cancel":
-                ctl.cancel(cmd[1])
-            elif cmd[0] == "rate":
-                ctl.set_rate(cmd[1], cmd[2])
+            match self._commands.popleft():
+                case _Start(goal):
+                    ctl.start_goal(goal, measured)
+                case _Cancel(goal):
+                    ctl.cancel(goal)
+                case _SetRate(goal, rate):
+                    ctl.set_rate(goal, rate)
         ctl.check_faults(measured, now)
         ctl.compute_next()
         self.stats.ticks += 1
