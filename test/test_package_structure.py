@@ -1,6 +1,6 @@
 """The package's shape: every subpackage outside ``ros/`` imports with rclpy blocked, ``ros/`` is the
-only rclpy importer, and the module import graph (late imports inside functions included) has no
-cycle."""
+only rclpy importer, the module import graph (late imports inside functions included) has no
+cycle, and the subpackages import one way, in the layer order of :data:`LAYERS`."""
 import ast
 import pathlib
 import subprocess
@@ -26,9 +26,10 @@ def _modules() -> dict[str, pathlib.Path]:
     return {_module_name(p): p for p in sorted(PKG.rglob("*.py"))}
 
 
-def _imports(name: str, path: pathlib.Path, known: set[str]) -> set[str]:
+def _imports(name: str, path: pathlib.Path, known: set[str], aliases: dict[str, str] | None = None) -> set[str]:
     """Every package module ``name`` imports, at top level or inside functions (TYPE_CHECKING blocks
-    excluded: they never run)."""
+    excluded: they never run). ``aliases``: {dotted name: module} for names that stand for a module
+    elsewhere (the top-level package's lazy exports)."""
     tree = ast.parse(path.read_text(), str(path))
     is_pkg = path.name == "__init__.py"
     package = name if is_pkg else name.rpartition(".")[0]
@@ -51,6 +52,7 @@ def _imports(name: str, path: pathlib.Path, known: set[str]) -> set[str]:
                 base = ".".join(parts + ([base] if base else []))
             targets = [base] + [f"{base}.{a.name}" for a in node.names]
         for t in targets:
+            t = (aliases or {}).get(t, t)
             # the longest known module that the target names (a submodule, or the module itself)
             while t and t not in known:
                 t = t.rpartition(".")[0]
@@ -87,6 +89,94 @@ def test_import_graph_has_no_cycle():
             visit(m)
     # the test sees edges at all (a parser that finds nothing would pass vacuously)
     assert "deepprompt_ros.model.network" in graph["deepprompt_ros.primitive.deep_promp"]
+
+
+#: The layers of the package: each group (a subpackage, or a top-level module) and the groups right
+#: below it. A module may import its own group, the groups below its group and, transitively,
+#: everything below those; never a group above or beside its own. Imports inside functions count;
+#: TYPE_CHECKING imports (annotations only) and the top-level package (its version and lazy
+#: exports, which are resolved to the module they name) do not.
+LAYERS: dict[str, tuple[str, ...]] = {
+    "common": (),
+    # the method
+    "model": ("common",),
+    "primitive": ("model",),
+    "training": ("primitive", "data.builtin"),
+    "evaluation": ("data",),  # the reconstruction metric needs only data (and the models' interface)
+    "baselines": ("training", "evaluation"),
+    # data, robots and simulation
+    "data": ("common",),
+    "robots": ("data",),
+    "sim": ("robots",),
+    "sim.tasks": ("sim",),
+    # The one group that is not a whole subpackage: the registry of the built-in data sets lives in
+    # data/ but lists the task generators of sim.tasks (which write data's format), so it is a
+    # layer of its own above them; the rest of data/ may not import it.
+    "data.builtin": ("sim.tasks",),
+    # serving
+    "execution": ("common",),
+    "server": ("execution", "primitive"),
+    "recording": ("data",),
+    # the top-level modules and the ROS nodes on top of everything they run
+    "paths": (),
+    "bringup": ("common", "paths"),
+    "run_main": ("bringup",),
+    "ros": ("server", "recording", "sim", "paths"),
+}
+
+
+def _group(module: str) -> str | None:
+    """The group of :data:`LAYERS` a package module belongs to (the longest that names it)."""
+    rest = module.partition(".")[2]
+    matches = [g for g in LAYERS if rest == g or rest.startswith(g + ".")]
+    return max(matches, key=len) if matches else None
+
+
+def _below(group: str) -> set[str]:
+    """Every group that ``group`` may import: those right below it and, transitively, below those."""
+    seen: set[str] = set()
+    todo = list(LAYERS[group])
+    while todo:
+        g = todo.pop()
+        if g not in seen:
+            seen.add(g)
+            todo.extend(LAYERS[g])
+    return seen
+
+
+def test_layers_are_a_one_way_order():
+    assert all(set(below) <= set(LAYERS) for below in LAYERS.values()), "LAYERS names an unknown group"
+    circular = sorted(g for g in LAYERS if g in _below(g))
+    assert not circular, f"LAYERS puts these groups below themselves: {circular}"
+
+
+def test_subpackages_import_one_way_in_layer_order():
+    import deepprompt_ros
+
+    mods = _modules()
+    known = set(mods)
+    exports = {f"deepprompt_ros.{name}": f"deepprompt_ros.{module}.{name}"
+               for name, module in deepprompt_ros._EXPORTS.items()}
+    undeclared = sorted(m for m in mods if m != "deepprompt_ros" and _group(m) is None)
+    assert not undeclared, (f"modules in no group of LAYERS: {undeclared}; add their subpackage to LAYERS "
+                            "with the groups it stands on")
+    upward, checked = [], set()
+    for m, path in sorted(mods.items()):
+        if m == "deepprompt_ros":
+            continue
+        group = _group(m)
+        allowed = _below(group)
+        for t in sorted(_imports(m, path, known, exports)):
+            target = _group(t)
+            if t == "deepprompt_ros" or target == group:
+                continue
+            checked.add((group, target))
+            if target not in allowed:
+                upward.append(f"{m} imports {t}: {group} may import only {sorted(allowed) or 'nothing'}")
+    assert not upward, ("imports against the layer order of LAYERS (move the code to the layer that needs "
+                        "it, or pass it in from above):\n  " + "\n  ".join(upward))
+    # the test sees edges at all (a parser that finds nothing would pass vacuously)
+    assert {("server", "execution"), ("primitive", "model"), ("data.builtin", "sim.tasks")} <= checked
 
 
 def test_only_ros_package_imports_rclpy():
