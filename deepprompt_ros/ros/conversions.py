@@ -27,7 +27,7 @@ __all__ = [
     # time stamps
     "stamp_to_ns", "ns_to_stamp", "stamp_to_sec", "sec_to_stamp",
     # joint states
-    "JointStateArrays", "joint_state_to_arrays", "arrays_to_joint_state", "reorder_joints",
+    "JointStateArrays", "joint_state_to_arrays", "arrays_to_joint_state", "joint_command_to_arrays", "reorder_joints",
     # images
     "SUPPORTED_IMAGE_ENCODINGS", "image_to_array", "array_to_image",
     # poses and points
@@ -151,6 +151,39 @@ def arrays_to_joint_state(names: Sequence[str], position, velocity=None, effort=
             raise ValueError(f"{field} has {arr.size} values for {n} joint names; expected {n}")
         setattr(msg, field, arr.tolist())
     return msg
+
+
+def joint_command_to_arrays(msg: JointState, names: Sequence[str], joints_text: str):
+    """A joint command (``sensor_msgs/JointState`` naming exactly the robot's joints, in any order)
+    -> its positions and velocities in the robot's joint order.
+
+    Parameters
+    ----------
+    msg : JointState
+    names : sequence of str, length n
+        The robot's joints, in its order.
+    joints_text : str
+        The joints for the error message.
+
+    Returns
+    -------
+    q : array, shape (n,)
+    qd : array, shape (n,), or None when the message has no velocities
+    order : int array, shape (n,)
+        Robot joint k is message joint ``order[k]``.
+
+    Raises
+    ------
+    ValueError
+        Array lengths that are neither the number of names nor (velocity, effort) 0 (see
+        :func:`joint_state_to_arrays`), or names that are not exactly ``names``.
+    """
+    js = joint_state_to_arrays(msg)
+    if len(js.names) != len(names) or set(js.names) != set(names):
+        raise ValueError(f"joint command names {list(js.names)}; expected exactly the "
+                         f"{len(names)} joints {joints_text} (any order)")
+    order = np.array([js.names.index(w) for w in names])
+    return js.position[order], (js.velocity[order] if js.velocity is not None else None), order
 
 
 def reorder_joints(names: Sequence[str], values, wanted: Sequence[str], *, label: str = "JointState"):

@@ -293,11 +293,7 @@ class CommandReader:
             msg = deserialize_message(data, JointState)
         except Exception as exc:
             raise ValueError(f"not a sensor_msgs/JointState ({type(exc).__name__}: {exc})") from None
-        js = conv.joint_state_to_arrays(msg)
-        if len(js.names) != len(self._names) or set(js.names) != set(self._names):
-            raise ValueError(f"joint command names {list(js.names)}; expected exactly the "
-                             f"{len(self._names)} joints {self._joints_text} (any order)")
-        order = np.array([js.names.index(w) for w in self._names])
+        q, qd, order = conv.joint_command_to_arrays(msg, self._names, self._joints_text)
         # bytes from the frame id to the end of the names: the layout key
         offset = 12
         (length,) = _COUNT.unpack_from(data, offset)
@@ -311,5 +307,4 @@ class CommandReader:
             offset += 4 + length
         self._key = bytes(data[12:offset])
         self._order = None if np.array_equal(order, np.arange(len(order))) else order
-        q = js.position[order]
-        return q, (js.velocity[order] if js.velocity is not None else None)
+        return q, qd
