@@ -1,5 +1,6 @@
 """sim_bridge as a real process over DDS (localhost discovery, random domain): joint states,
-commands, objects, camera, kinesthetic guiding, robustness to bad input and bad parameters."""
+commands, objects, camera, kinesthetic guiding, robustness to bad input and bad parameters. The
+tests on the running node run once with its fast path and once with plain rclpy (``fast_path``)."""
 import pathlib
 import re
 import time
@@ -41,9 +42,12 @@ def env(tmp_path_factory):
     return isolated_ros_env(tmp_path_factory.mktemp("ros_sim_bridge"))
 
 
-@pytest.fixture(scope="module")
-def sim(env):
-    with NodeProcess.start_module("deepprompt_ros.ros.sim_bridge", env, params=SIM_PARAMS) as proc:
+@pytest.fixture(scope="module", params=[True, False], ids=["fast_path", "plain_rclpy"])
+def sim(env, request):
+    """The node under test, in one mode after the other (the first is stopped before the second starts)."""
+    with NodeProcess.start_module("deepprompt_ros.ros.sim_bridge", env,
+                                  params={**SIM_PARAMS, "fast_path": request.param},
+                                  name="sim_bridge_" + ("fast" if request.param else "plain")) as proc:
         yield proc
 
 

@@ -37,25 +37,33 @@ follows the wall clock, otherwise use ``use_sim_time`` with ``/clock`` in the co
 All PyBullet calls run on one simulation thread, paced with ``time.perf_counter`` (see
 :meth:`Simulation.step <deepprompt_ros.sim.simulation.Simulation.step>`); ROS callbacks hand it work.
 
-Cost per physics step (1 kHz, Python): the simulation thread also takes the joint commands from
-their subscription (a helper node that no executor spins: an executor callback per message cost
-~0.3 ms of CPU per command in Python, most of a core at 1 kHz) and reads the numbers straight from
-the serialized message once its joint-name layout has been validated; joint_states and /clock
-are published as pre-serialized bytes with the numbers patched in. Measured on a 2-core machine
-that other jobs kept busy (load average ~5): ~28 % of a core for simulating and publishing at
-1 kHz, ~46 % while following a 1 kHz command stream (with an executor callback per command: 66 %).
-The rest is the simulation itself (``Simulation.step``, ``set_position_targets``: ~50 µs per step
-on an idle core).
+Before each physics step the simulation thread applies every joint command received since the
+previous one, in order. How they reach it and how joint_states and /clock leave (parameter
+``fast_path``, same topics and messages either way):
+
+* fast path: the joint_command subscription sits in a callback group that no executor waits on
+  (:mod:`deepprompt_ros.ros.fastpath.polled`): the simulation thread takes the serialized messages
+  itself and reads the numbers straight from the bytes once a joint-name layout has been validated
+  (:class:`~deepprompt_ros.ros.fastpath.wire.CommandReader`); joint_states and /clock are published
+  as pre-serialized bytes with the numbers patched in (:mod:`deepprompt_ros.ros.fastpath.wire`). At
+  1 kHz an executor callback per command and a message built per step cost a large share of a core
+  in Python;
+* plain rclpy: an executor callback queues each command for the simulation thread; joint_states and
+  /clock are built and published as rclpy messages.
+
+One node per process: every topic and service above is this node's own (``ros2 node info``).
+The interpreter's switch interval and the garbage collector's frozen start-up objects (see
+:mod:`deepprompt_ros.ros.fastpath.realtime`) keep the simulation thread from waiting long for the
+interpreter lock, in both modes.
 """
 from __future__ import annotations
 
 import concurrent.futures
-import gc
 import queue
 import sys
 import threading
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import rclpy
@@ -72,13 +80,26 @@ from std_srvs.srv import SetBool, Trigger
 
 from deepprompt_ros.common.params import ConfigError
 from deepprompt_ros.ros import conversions as conv
-from deepprompt_ros.ros.fastpath import wire
+from deepprompt_ros.ros.fastpath import polled, realtime, wire
 from deepprompt_ros.ros.parameters import declare_config
 from deepprompt_ros.sim.bridge_config import ObjectConfig, SimBridgeConfig
 from deepprompt_ros.sim.camera import CameraPose
 from deepprompt_ros.sim.simulation import Simulation
 
 __all__ = ["SimBridge", "main"]
+
+#: The interpreter's switch interval (s): how long another thread may keep the interpreter lock
+#: once the simulation thread's sleep has ended (Python's default, 5 ms, is five physics steps).
+SWITCH_INTERVAL = 5e-4
+
+
+def _drain(q: queue.SimpleQueue) -> Iterator[Any]:
+    """The items waiting in ``q``, oldest first (without blocking)."""
+    while True:
+        try:
+            yield q.get_nowait()
+        except queue.Empty:
+            return
 
 
 class SimBridge(Node):
@@ -137,13 +158,19 @@ class SimBridge(Node):
         self._description_pub = self.create_publisher(String, "robot_description", QoSProfile(
             depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
         self._description_pub.publish(String(data=spec.urdf_path.read_text()))
-        # joint commands are taken by the simulation thread from a subscription of a helper node
-        # that no executor spins (no executor dispatch per message at 1 kHz)
-        self._command_node = rclpy.create_node(f"{self.get_name()}_command_reader",
-                                               namespace=self.get_namespace(), context=self.context)
-        self._command_sub = self._command_node.create_subscription(
-            JointState, p.command_topic, lambda msg: None, 10, raw=True)
-        self._read_command = wire.CommandReader(self._names, spec.joints_text())
+        # joint commands: _pending_commands() yields those received since the last physics step,
+        # _read_command turns one into (q, qd) in the robot's order (see the module docstring)
+        if p.fast_path:  # taken by the simulation thread itself, read from the serialized bytes
+            sub = self.create_subscription(JointState, p.command_topic, lambda msg: None, 10, raw=True,
+                                           callback_group=polled.NotExecuted())
+            self._pending_commands = lambda: (data for data, _ in polled.take_all(sub))
+            self._read_command = wire.CommandReader(self._names, spec.joints_text())
+        else:  # an executor callback queues them for the simulation thread
+            commands: queue.SimpleQueue = queue.SimpleQueue()
+            self.create_subscription(JointState, p.command_topic, lambda msg: commands.put(msg), 10)
+            self._pending_commands = lambda: _drain(commands)
+            joints_text = spec.joints_text()
+            self._read_command = lambda msg: conv.joint_command_to_arrays(msg, self._names, joints_text)[:2]
         self.create_subscription(PointStamped, p.guide_topic, self._on_guide, 10)
         self.create_service(SpawnObject, "spawn_object", self._on_spawn)
         self.create_service(SetBool, "set_kinesthetic", self._on_set_kinesthetic)
@@ -170,10 +197,6 @@ class SimBridge(Node):
         if self._thread.is_alive():
             self._thread.join(timeout=5.0)
 
-    def destroy_node(self) -> None:
-        self._command_node.destroy_node()
-        super().destroy_node()
-
     @property
     def failed(self) -> bool:
         return self._failed
@@ -190,8 +213,22 @@ class SimBridge(Node):
         dt_obj = 1.0 / p.objects_rate_hz
         next_cam = next_obj = 0.0
         t0_ns = time.time_ns()
-        state_bytes = wire.JointStateSerializer(self._names, effort=True)
-        clock_bytes = wire.ClockSerializer() if self._clock_pub is not None else None
+        # state_msg(joint state, stamp ns) and clock_msg(stamp ns): what the publishers send
+        if p.fast_path:  # the numbers written into serialized messages
+            state_bytes = wire.JointStateSerializer(self._names, effort=True)
+
+            def state_msg(js, stamp_ns: int) -> bytes:
+                return state_bytes(js.position, js.velocity, stamp_ns, js.effort)
+
+            clock_msg = wire.ClockSerializer()
+        else:  # rclpy messages
+            names = self._names
+
+            def state_msg(js, stamp_ns: int) -> JointState:
+                return conv.arrays_to_joint_state(names, js.position, js.velocity, js.effort, stamp_ns=stamp_ns)
+
+            def clock_msg(stamp_ns: int) -> Clock:
+                return Clock(clock=conv.ns_to_stamp(stamp_ns))
         js_pub, clock_pub, js_every = self._js_pub, self._clock_pub, self._js_every
         calls = self._calls
         steps = 0
@@ -208,10 +245,9 @@ class SimBridge(Node):
                 steps += 1
                 stamp_ns = t0_ns + round(sim.time * 1e9)
                 if steps % js_every == 0:
-                    js = sim.joint_state()
-                    js_pub.publish(state_bytes(js.position, js.velocity, stamp_ns, js.effort))
+                    js_pub.publish(state_msg(sim.joint_state(), stamp_ns))
                 if clock_pub is not None:
-                    clock_pub.publish(clock_bytes(stamp_ns))
+                    clock_pub.publish(clock_msg(stamp_ns))
                 if self._object_pubs and sim.time >= next_obj:
                     next_obj = sim.time + dt_obj
                     stamp = conv.ns_to_stamp(stamp_ns)
@@ -236,18 +272,16 @@ class SimBridge(Node):
     def _take_commands(self) -> None:
         """Apply every joint command received since the last step, in order (the newest valid
         one wins); invalid ones are dropped with a throttled warning."""
-        sub = self._command_sub
-        with sub.handle:
-            while (taken := sub.handle.take_message(sub.msg_type, True)) is not None:
-                try:
-                    q, qd = self._read_command(taken[0])
-                    if self.sim.kinesthetic:
-                        self.get_logger().warn("joint command ignored: kinesthetic mode is on (set_kinesthetic "
-                                               "false to command positions)", throttle_duration_sec=2.0)
-                        continue
-                    self.sim.set_position_targets(q, qd)  # checks the limits
-                except ValueError as exc:
-                    self.get_logger().warn(f"joint command rejected: {exc}", throttle_duration_sec=1.0)
+        for command in self._pending_commands():
+            try:
+                q, qd = self._read_command(command)
+                if self.sim.kinesthetic:
+                    self.get_logger().warn("joint command ignored: kinesthetic mode is on (set_kinesthetic "
+                                           "false to command positions)", throttle_duration_sec=2.0)
+                    continue
+                self.sim.set_position_targets(q, qd)  # checks the limits
+            except ValueError as exc:
+                self.get_logger().warn(f"joint command rejected: {exc}", throttle_duration_sec=1.0)
 
     # ------------------------------------------------------------------------------------------
     # callbacks (executor thread)
@@ -343,19 +377,15 @@ class SimBridge(Node):
 
 def main(args=None) -> int:
     """Entry point of ``ros2 run deepprompt_ros sim_bridge``; returns the exit code."""
-    # The simulation thread must get the interpreter lock soon after its sleep ends: bound how
-    # long the executor thread may keep it (Python's default is 5 ms, five physics steps).
-    sys.setswitchinterval(5e-4)
+    realtime.set_switch_interval(SWITCH_INTERVAL)
     rclpy.init(args=args)
     node = None
     code = 0
     try:
         node = SimBridge()
-        # Start-up objects (pybullet, pinocchio, rclpy: ~43 000) to the permanent generation: a full
-        # garbage collection over them took ~50 ms here, holding the interpreter lock (a stalled
-        # simulation thread); later collections only scan what was allocated since.
-        gc.collect()
-        gc.freeze()
+        # start-up objects (pybullet, pinocchio, rclpy) out of the collector's way: a full collection
+        # over them holds the interpreter lock long enough to stall the simulation thread
+        realtime.freeze_startup_objects()
         node.start()
         rclpy.spin(node)
     except ConfigError as exc:

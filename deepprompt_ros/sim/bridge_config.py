@@ -35,6 +35,14 @@ class SimBridgeConfig:
                                         "step, n = round(rate_hz / joint_states_rate_hz); 0 = every step",
                                         min=0.0, max=5000.0, unit="Hz")
     publish_clock: bool = param(True, "publish the simulation time on /clock")
+    fast_path: bool = param(True, "How the node talks to ROS. true: the simulation thread takes the joint "
+                            "commands from their subscription itself (not through the executor) and reads the "
+                            "numbers from the serialized message, and joint_states and /clock are published as "
+                            "pre-serialized bytes (deepprompt_ros.ros.fastpath; parts of it use rclpy "
+                            "internals). false: plain rclpy only (joint commands through an executor callback, "
+                            "joint_states and /clock built and published as rclpy messages); slower, for "
+                            "comparison or when an rclpy release breaks the fast path. Same topics, services "
+                            "and behaviour either way.")
     initial_positions: tuple[float, ...] = param((), "start configuration, one value per joint; empty = the "
                                                  "robot's home", unit="rad")
     kinesthetic: bool = param(False, "start in kinesthetic (gravity-compensated) mode")
