@@ -1,6 +1,7 @@
 """Demo recording: the ROS-free core (deepprompt_ros.recording) in-process, then the
 demo_recorder node as a real process next to a real sim_bridge process (localhost DDS, random
-domain): a kinesthetic demonstration guided in the simulation, bad requests, crash safety."""
+domain): a kinesthetic demonstration guided in the simulation (recorded with the recorder's fast
+path and with plain rclpy, ``fast_path``), bad requests, crash safety."""
 import pathlib
 import time
 
@@ -206,7 +207,8 @@ def _recorder_params(out: pathlib.Path, **kw):
 
 @pytest.fixture(scope="module")
 def nodes(env, work):
-    """sim_bridge + recorder A (main) + B (crashed later) + C (misconfigured) + D (invalid parameters)."""
+    """sim_bridge + recorder A (main) + P (A's settings with plain rclpy, in /p) + B (crashed later) +
+    C (misconfigured) + D (invalid parameters)."""
     not_a_dir = work / "not_a_dir"
     not_a_dir.write_text("")
     procs = {
@@ -215,6 +217,12 @@ def nodes(env, work):
             "object_names": ["cube"], "objects.cube.position": CUBE}),
         "A": NodeProcess.start_module("deepprompt_ros.ros.demo_recorder", env, name="recorder_A",
                                       params_files=[CONFIG], params=_recorder_params(work / "A")),
+        "P": NodeProcess.start_module("deepprompt_ros.ros.demo_recorder", env, name="recorder_P",
+                                      params_files=[CONFIG], ros_args=["-r", "__ns:=/p"],
+                                      params=_recorder_params(work / "P", fast_path=False,
+                                                              joint_states_topic="/joint_states",
+                                                              context_topics=["object=/objects/cube/pose",
+                                                                              "/camera/image_raw"])),
         "B": NodeProcess.start_module("deepprompt_ros.ros.demo_recorder", env, name="recorder_B",
                                       ros_args=["-r", "__ns:=/b"],
                                       params=_recorder_params(work / "B", joint_states_topic="/joint_states",
@@ -238,10 +246,10 @@ def nodes(env, work):
 def client(env, nodes):
     with RosTestClient(env) as c:
         c.joint_states = c.subscribe("joint_states", JointState, 1)
-        for srv in ("start_recording", "/b/start_recording", "/c/start_recording"):
+        for srv in ("start_recording", "/p/start_recording", "/b/start_recording", "/c/start_recording"):
             assert c.wait_for_service(StartRecording, srv, 30.0), "\n".join(p.output_tail() for p in nodes.values())
         assert c.wait_for_messages(c.joint_states, 1, 10.0), nodes["sim"].output_tail()
-        for prefix, name in (("", "A"), ("/b/", "B")):  # wait until each recorder discovered the sim
+        for prefix, name in (("", "A"), ("/p/", "P"), ("/b/", "B")):  # until each recorder discovered the sim
             deadline = time.monotonic() + 30.0
             while not (res := _start(c, "probe", prefix)).success and time.monotonic() < deadline:
                 c.spin_for(0.2)
@@ -258,9 +266,10 @@ def _stop(client, prefix="", discard=False):
     return client.call(StopRecording, prefix + "stop_recording", StopRecording.Request(discard=discard))
 
 
-def test_record_guided_kinesthetic_demo(nodes, client, work):
+@pytest.mark.parametrize("recorder,prefix", [("A", ""), ("P", "/p/")], ids=["fast_path", "plain_rclpy"])
+def test_record_guided_kinesthetic_demo(nodes, client, work, recorder, prefix):
     kin = RobotKinematics(SPEC)
-    res = _start(client, "guided_1")
+    res = _start(client, "guided_1", prefix)
     assert res.success and res.code.value == ResultCode.SUCCESS, res.message
     assert client.call(SetBool, "set_kinesthetic", SetBool.Request(data=True)).success
     js = client.latest(client.joint_states)
@@ -269,15 +278,15 @@ def test_record_guided_kinesthetic_demo(nodes, client, work):
     guide.point.x, guide.point.y, guide.point.z = (ee0 + [0.0, 0.1, 0.0]).tolist()
     client.publish("guide_target", guide)
     client.spin_for(1.5)
-    res = _stop(client)
-    assert res.success, res.message + nodes["A"].output_tail()
+    res = _stop(client, prefix)
+    assert res.success, res.message + nodes[recorder].output_tail()
     print(res.message)
     guide.point.x = float("nan")
     client.publish("guide_target", guide)
     client.call(SetBool, "set_kinesthetic", SetBool.Request(data=False))
     client.call(Trigger, "reset")
 
-    assert res.dataset_path == str(work / "A" / "guided_1.npz")
+    assert res.dataset_path == str(work / recorder / "guided_1.npz")
     demo = load_demo(res.dataset_path)
     assert res.n_samples == len(demo.t) > 500
     assert demo.joint_names == SPEC.joint_names and demo.q.shape == (len(demo.t), 6)
@@ -292,7 +301,7 @@ def test_record_guided_kinesthetic_demo(nodes, client, work):
     assert demo.images.std() > 10
 
     bag = pathlib.Path(res.bag_path)
-    assert bag == work / "A" / "bags" / "guided_1" / "guided_1_0.mcap"
+    assert bag == work / recorder / "bags" / "guided_1" / "guided_1_0.mcap"
     summary, msgs = _read_mcap(bag)
     meta = yaml.safe_load((bag.parent / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
     counts = {t["topic_metadata"]["name"]: t["message_count"] for t in meta["topics_with_message_count"]}

@@ -37,8 +37,15 @@ class RecorderConfig:
     joint_states_timeout: float = param(1.0, "start_recording fails when the latest joint state is older "
                                         "than this", min=0.01, max=3600.0, unit="s")
     phase_type: str = param("linear", "phase type of the demonstrations", choices=("linear", "rhythmic"))
-    poll_rate_hz: float = param(100.0, "how often queued messages are taken from the subscriptions (they "
-                                "keep 1000 joint states)", min=1.0, max=1000.0, unit="Hz")
+    fast_path: bool = param(True, "How the node talks to ROS. true: no executor waits on the subscriptions; "
+                            "their messages queue in the middleware and are taken in batches poll_rate_hz "
+                            "times a second (deepprompt_ros.ros.fastpath; parts of it use rclpy internals). "
+                            "false: plain rclpy only (an executor callback per message; a message still queued "
+                            "when stop_recording is handled is not recorded); slower, for comparison or when an "
+                            "rclpy release breaks the fast path. Same topics, services, bags and demonstrations "
+                            "otherwise.")
+    poll_rate_hz: float = param(100.0, "with fast_path: how often queued messages are taken from the "
+                                "subscriptions (they keep 1000 joint states)", min=1.0, max=1000.0, unit="Hz")
 
     def __post_init__(self):
         validate(self)

@@ -6,9 +6,16 @@ Run: ``ros2 run deepprompt_ros demo_recorder --ros-args --params-file config/dem
 * services ``start_recording`` (deepprompt_msgs/StartRecording) and ``stop_recording``
   (deepprompt_msgs/StopRecording);
 * subscribes ``joint_states`` (sensor_msgs/JointState) all the time (to know it is alive) and
-  the context topics (``context_topics`` or the request's list) once they have a publisher; the
-  messages queue in the middleware and are taken in batches ``poll_rate_hz`` times a second,
-  each with the time it was received.
+  the context topics (``context_topics`` or the request's list) once they have a publisher. The
+  subscriptions are raw (``raw=True``: the serialized bytes, written to the bag as received and
+  deserialized only for the demonstration) and every message comes with the time it was received
+  (its message info). Parameter ``fast_path``: true, they sit in a callback group that no executor
+  waits on (:mod:`deepprompt_ros.ros.fastpath.polled`), their messages queue in the middleware and
+  a timer takes them in batches ``poll_rate_hz`` times a second (at 1 kHz an executor wake-up per
+  message is a sizeable share of a core in Python); false, the executor hands each message to a
+  callback.
+
+One node per process: the subscriptions and services above are this node's own (``ros2 node info``).
 
 Between start and stop, every joint state and context message is written, as received, to a
 rosbag2 bag (MCAP storage), and converted for the demonstration: the joint positions of
@@ -43,6 +50,7 @@ from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
+from rclpy.subscription import Subscription
 from sensor_msgs.msg import JointState
 
 from deepprompt_ros.data.io import save_demo
@@ -58,6 +66,7 @@ from deepprompt_ros.recording.demo_buffer import DemoBuffer
 from deepprompt_ros.common.params import ConfigError
 from deepprompt_ros.recording.config import RecorderConfig
 from deepprompt_ros.ros import conversions as conv
+from deepprompt_ros.ros.fastpath import polled
 from deepprompt_ros.ros.parameters import declare_config
 
 __all__ = ["DemoRecorder", "main"]
@@ -67,7 +76,7 @@ JOINT_STATE_TYPE = "sensor_msgs/msg/JointState"
 
 
 def _unused(*_args) -> None:
-    """Callback of the polled subscriptions; never called (their node is not spun)."""
+    """Callback of the polled subscriptions; never called (no executor runs their group)."""
 
 
 def _msg_class(type_name: str):
@@ -118,17 +127,14 @@ class DemoRecorder(Node):
         self._last_js: tuple[int, bytes] | None = None  # (receive time ns, CDR bytes)
         self._contexts: dict[str, _ContextTopic] = {}
         self._rec: _Recording | None = None
-        # The subscriptions live on a second node that no executor spins: their messages queue
-        # in the middleware and a timer takes them in batches (an executor wake-up per message
-        # costs ~0.2 ms of Python at 1 kHz). Message info gives each one's receive time.
-        self._taps = rclpy.create_node(self.get_name() + "_taps", namespace=self.get_namespace(),
-                                       context=self.context, use_global_arguments=False,  # names
-                                       start_parameter_services=False, enable_rosout=False)  # resolved here
-        self._js_sub = self._taps.create_subscription(JointState, self._js_topic, _unused,
-                                                      self._js_qos, raw=True)
+        # fast path: the subscriptions' group (no executor waits on it; _poll takes their messages)
+        self._polled = polled.NotExecuted() if p.fast_path else None
+        self._polled_subs: list[tuple[Subscription, Any]] = []  # (subscription, handle(data, info))
+        self._tap(JointState, p.joint_states_topic, self._js_qos, self._on_joint_state)
         self.create_service(StartRecording, "start_recording", self._on_start)
         self.create_service(StopRecording, "stop_recording", self._on_stop)
-        self.create_timer(1.0 / p.poll_rate_hz, self._poll)
+        if self._polled is not None:
+            self.create_timer(1.0 / p.poll_rate_hz, self._poll)
         self.create_timer(0.5, self._subscribe_default_contexts)
         self.get_logger().info(
             f"recording {self._js_topic} into {self._out_dir}"
@@ -138,6 +144,16 @@ class DemoRecorder(Node):
     # ------------------------------------------------------------------------------------------
     # subscriptions
     # ------------------------------------------------------------------------------------------
+    def _tap(self, msg_class, topic: str, qos: QoSProfile, handle) -> Subscription:
+        """A raw subscription of this node to ``topic`` whose messages reach ``handle(data, info)``
+        (serialized bytes, message info): taken by :meth:`_poll` (fast path) or through the
+        executor (plain rclpy; a callback of two parameters receives the message info)."""
+        if self._polled is None:
+            return self.create_subscription(msg_class, topic, handle, qos, raw=True)
+        sub = self.create_subscription(msg_class, topic, _unused, qos, raw=True, callback_group=self._polled)
+        self._polled_subs.append((sub, handle))
+        return sub
+
     def _on_joint_state(self, data: bytes, info: dict) -> None:
         self._last_js = (info.get("received_timestamp") or time.time_ns(), data)
         if self._rec is not None:
@@ -184,22 +200,16 @@ class DemoRecorder(Node):
             self.get_logger().warn(f"message on {ctx.topic} not usable as context: {exc}",
                                    throttle_duration_sec=2.0)
 
-    @staticmethod
-    def _drain(sub, handle) -> None:
-        """Hand every message queued in ``sub`` to ``handle(data, info)`` (as rclpy's own
-        ``wait_for_message`` takes them)."""
-        try:
-            with sub.handle:
-                while (taken := sub.handle.take_message(sub.msg_type, sub.raw)) is not None:
-                    handle(*taken)
-        except InvalidHandle:  # destroyed during shutdown
-            pass
-
     def _poll(self) -> None:
-        """Take the queued messages of all subscriptions (timer callback)."""
-        self._drain(self._js_sub, self._on_joint_state)
-        for ctx in list(self._contexts.values()):
-            self._drain(ctx.subscription, lambda d, i, c=ctx: self._on_context(c, d, i))
+        """Fast path: hand the queued messages of every subscription to its handler, subscription
+        by subscription (timer callback; also before a recording starts and stops). Plain rclpy:
+        nothing (the executor delivers them)."""
+        for sub, handle in list(self._polled_subs):
+            try:
+                for data, info in polled.take_all(sub):
+                    handle(data, info)
+            except InvalidHandle:  # destroyed during shutdown
+                pass
 
     def _subscribe(self, topic: str) -> _ContextTopic:
         """Subscribe to a context topic (raw); its type and QoS come from its publishers.
@@ -209,7 +219,7 @@ class DemoRecorder(Node):
         RecordingError
             No publisher, or publishers of several types.
         """
-        topic = self.resolve_topic_name(topic)
+        name, topic = topic, self.resolve_topic_name(topic)  # as given (the subscription resolves it)
         if topic in self._contexts:
             return self._contexts[topic]
         pubs = self.get_publishers_info_by_topic(topic)
@@ -229,7 +239,7 @@ class DemoRecorder(Node):
                                  f"({exc})") from None
         ctx = _ContextTopic(topic, types[0], cls, qos_profile_yaml(
             reliability="best_effort" if best_effort else "reliable", depth=10))
-        ctx.subscription = self._taps.create_subscription(cls, topic, _unused, qos, raw=True)
+        ctx.subscription = self._tap(cls, name, qos, lambda d, i, c=ctx: self._on_context(c, d, i))
         self._contexts[topic] = ctx
         return ctx
 
@@ -412,10 +422,6 @@ class DemoRecorder(Node):
                        + "".join(f"; {n}" for n in notes))
         self.get_logger().info(res.message)
         return res
-
-    def destroy_node(self) -> None:
-        self._taps.destroy_node()
-        super().destroy_node()
 
     def shutdown_recording(self) -> None:
         """On node shutdown: an unfinished recording is left like after a crash (raw data kept)."""
