@@ -10,7 +10,7 @@ of its own (``test/test_fastpath_<module>.py``):
 * :mod:`.realtime` -- real-time scheduling, CPU affinity, the interpreter's switch interval,
   garbage-collector freezing, OS thread names.
 
-primitive_server's parameter ``fast_path: false`` replaces the first three by plain rclpy
-(executor-dispatched services and subscriptions, rclpy messages); an rclpy release that breaks
-them is caught by their tests.
+The nodes' parameter ``fast_path: false`` (primitive_server, sim_bridge, demo_recorder) replaces
+the first three by plain rclpy (executor-dispatched services and subscriptions, rclpy messages);
+an rclpy release that breaks them is caught by their tests.
 """

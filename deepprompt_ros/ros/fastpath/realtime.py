@@ -1,11 +1,12 @@
 """Process and thread settings for the control-rate paths: real-time scheduling (SCHED_FIFO), CPU
 affinity, the interpreter's switch interval, garbage-collector freezing and OS thread names.
 
-Every such setting of primitive_server and its control process goes through this module, in one
-style: a function that applies it to the calling thread (or the process) and returns ``''`` or
-why it was refused (the setting is then unchanged); nothing raises for a refusal. No rclpy
-import: the ROS-free stream loop (:class:`~deepprompt_ros.execution.stream_loop.StreamLoop`)
-receives :func:`prepare_thread` as its ``thread_setup`` callable.
+Every such setting of primitive_server, its control process and sim_bridge goes through this
+module, in one style: a function that applies it to the calling thread (or the process) and
+returns ``''`` or why it was refused (the setting is then unchanged); nothing raises for a
+refusal. No rclpy import: the ROS-free stream loop
+(:class:`~deepprompt_ros.execution.stream_loop.StreamLoop`) receives :func:`prepare_thread` as its
+``thread_setup`` callable.
 """
 from __future__ import annotations
 
