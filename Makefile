@@ -16,7 +16,7 @@ test: setup
 bench: setup
 	$(PY) bench/run_all.py
 
-# The paper's experiments (EXPERIMENTS.md): --medium writes docs/experiments/ (~1 h here).
+# The paper's experiments (EXPERIMENTS.md): --medium writes docs/experiments/ (resumable: see EXPERIMENTS.md).
 experiments: setup
 	$(PY) experiments/run.py --medium
 

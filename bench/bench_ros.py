@@ -261,7 +261,7 @@ def role_client(out: str, gate: str, seconds: float, min_calls: int, service: st
 
     Round trip: from just before the request is sent to the moment its response has been taken in
     this process. The client waits on its own rcl wait set (what an rclpy executor does inside, without
-    the executor's per-wake bookkeeping, ~0.3-1 ms of Python on a loaded machine) and sleeps between
+    the executor's per-wake bookkeeping) and sleeps between
     calls.
     """
     from deepprompt_msgs.srv import Condition, ListPrimitives

@@ -49,7 +49,7 @@ DATA_SEED = 1000
 @dataclasses.dataclass(frozen=True)
 class Scale:
     """How big a run is: ``tiny`` (the smoke test), ``quick`` (≲ 2 min), ``medium`` (the run documented
-    in EXPERIMENTS.md), ``full`` (closer to the paper; hours here).
+    in EXPERIMENTS.md), ``full`` (the paper's sizes).
 
     Attributes
     ----------

@@ -129,7 +129,7 @@ if [[ "$MSG_INSTALLED" == 1 ]] && stamp_matches msg_defs "$MSG_HASH"; then
 elif [[ "$CHECK" == 1 ]]; then
   stale "deepprompt_msgs not built from the current msg_defs/ and requirements.txt"
 else
-  say "building deepprompt_msgs (msg_defs/) into $VENV with CMake, $JOBS jobs (2-4 min on 2 cores); log: $BUILD_DIR/build.log"
+  say "building deepprompt_msgs (msg_defs/) into $VENV with CMake, $JOBS jobs; log: $BUILD_DIR/build.log"
   rm -rf "$BUILD_DIR"   # clean build: the generated code must match the installed wheels
   mkdir -p "$BUILD_DIR"
   (

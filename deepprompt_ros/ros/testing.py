@@ -446,8 +446,8 @@ class JointStateTap:
     """Every message of a high-rate (500-1000 Hz) sensor_msgs/JointState topic, taken in batches
     from a subscription of a node that no executor spins.
 
-    Dispatching each message through an rclpy executor in the test process falls behind a 1 kHz
-    topic on a loaded 2-core machine; taking the queued messages (serialized, deserialized in
+    Dispatching each message through an rclpy executor in the test process can fall behind a 1 kHz
+    topic on a busy machine; taking the queued messages (serialized, deserialized in
     :meth:`arrays`) every few tens of ms keeps up. Call :meth:`take` often enough that fewer than
     ``depth`` messages queue up between calls.
     """

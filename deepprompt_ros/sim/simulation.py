@@ -466,7 +466,7 @@ class Simulation:
 
         v_fb = sign(e) min(k|e|, sqrt(2 a |e|)) brakes at the acceleration limit a before the
         target; v = clip(q̇_ff + v_fb, ±v_cmd_max), then its change per step is limited to a·dt.
-        (Plain floats, joint by joint: numpy costs ~1 µs per operation on arrays this small.)
+        (Plain floats, joint by joint: on arrays this small numpy's per-call overhead dominates.)
 
         Parameters
         ----------
@@ -516,7 +516,7 @@ class Simulation:
             else:
                 v_cmd = self._velocity_command(q)
                 self._v_cmd = np.array(v_cmd)
-                # (lists: pybullet reads numpy arrays element by element, ~4 µs slower)
+                # (lists: pybullet reads numpy arrays element by element, which is slower)
                 pb.setJointMotorControlArray(robot, arm, pb.VELOCITY_CONTROL,
                                              targetVelocities=v_cmd, forces=self._effort_list,
                                              physicsClientId=c)

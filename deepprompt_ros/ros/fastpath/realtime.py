@@ -24,8 +24,8 @@ class GcMonitor:
     """Counts the interpreter's cyclic garbage collections and the time they took (``gc.callbacks``).
 
     A collection holds the interpreter lock: a full one over a node's start-up objects (torch,
-    numpy, rclpy, the models: ~190 000 objects in primitive_server) is a stall of every thread
-    that lasts tens to hundreds of milliseconds. Nodes therefore call ``gc.freeze()`` once started
+    numpy, rclpy, the models: hundreds of thousands of objects in primitive_server) stalls every
+    thread for as long as the scan takes. Nodes therefore call ``gc.freeze()`` once started
     (:func:`freeze_startup_objects`), after which collections only scan what was allocated since.
     """
 
