@@ -50,8 +50,14 @@ def _load(target: str):
 
 
 def _where(cls) -> str:
-    path = pathlib.Path(sys.modules[cls.__module__].__file__).resolve().relative_to(ROOT)
-    return f"`{cls.__name__}` in `{path.as_posix()}`"
+    """Where ``cls`` and each dataclass it inherits parameters from are declared."""
+    parts = []
+    for c in cls.__mro__:
+        if c is object or not hasattr(c, "__dataclass_fields__"):
+            continue
+        path = pathlib.Path(sys.modules[c.__module__].__file__).resolve().relative_to(ROOT)
+        parts.append(f"`{c.__name__}` in `{path.as_posix()}`")
+    return parts[0] + (" (with the fields of " + ", ".join(parts[1:]) + ")" if parts[1:] else "")
 
 
 def render() -> str:

@@ -33,6 +33,9 @@ mid-recording leaves the finished demonstrations intact and only a hidden ``.par
 Bad requests (start while recording, stop while not recording, no recent joint state, missing
 context publisher, unwritable folder, existing name) get ``success=false`` and a message; the
 node keeps serving.
+
+The node is wiring (recording logic: :mod:`deepprompt_ros.recording`); it passes 400 lines by this description and
+its two subscription modes (``fast_path`` true / false).
 """
 from __future__ import annotations
 

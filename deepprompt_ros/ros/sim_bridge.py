@@ -55,6 +55,9 @@ One node per process: every topic and service above is this node's own (``ros2 n
 The interpreter's switch interval and the garbage collector's frozen start-up objects (see
 :mod:`deepprompt_ros.ros.fastpath.realtime`) keep the simulation thread from waiting long for the
 interpreter lock, in both modes.
+
+The node is wiring (simulation: :mod:`deepprompt_ros.sim`); it passes 400 lines by this description and
+its two subscription modes (``fast_path`` true / false).
 """
 from __future__ import annotations
 

@@ -33,6 +33,9 @@ Typical use in a test module::
 
 :class:`RosTestClient` is the test's own rclpy node in its own ``Context`` (domain from the
 environment); it spins only inside its helper calls, so a test reads its results without threads.
+
+One module (about 500 lines) because every node test uses these pieces together: the isolated
+environment, the node processes, the test client and its joint-state tap.
 """
 from __future__ import annotations
 
@@ -444,7 +447,8 @@ class RosTestClient:
 
 class JointStateTap:
     """Every message of a high-rate (500-1000 Hz) sensor_msgs/JointState topic, taken in batches
-    from a subscription of a node that no executor spins.
+    from a subscription of the test client's node that no executor waits on
+    (:class:`~deepprompt_ros.ros.fastpath.polled.NotExecuted`).
 
     Dispatching each message through an rclpy executor in the test process can fall behind a 1 kHz
     topic on a busy machine; taking the queued messages (serialized, deserialized in
@@ -453,22 +457,22 @@ class JointStateTap:
     """
 
     def __init__(self, client: "RosTestClient", topic: str = "joint_states", depth: int = 10000):
-        import rclpy
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import JointState
 
-        self.node = rclpy.create_node(f"tap_{topic.strip('/').replace('/', '_')}", context=client.context,
-                                      enable_rosout=False, start_parameter_services=False)
+        from deepprompt_ros.ros.fastpath.polled import NotExecuted
+
+        self.node = client.node
         self.sub = self.node.create_subscription(
             JointState, topic, lambda m: None, QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE),
-            raw=True)
+            callback_group=NotExecuted(), raw=True)
         self.raw: list[bytes] = []
 
     def take(self) -> None:
         """Move the queued messages into :attr:`raw`."""
-        with self.sub.handle:
-            while (taken := self.sub.handle.take_message(self.sub.msg_type, True)) is not None:
-                self.raw.append(taken[0])
+        from deepprompt_ros.ros.fastpath.polled import take_all
+
+        self.raw.extend(msg for msg, _ in take_all(self.sub))
 
     def arrays(self, names: Sequence[str]):
         """Header stamps (N,) in ns, positions (N, d) and velocities (N, d; NaN where a message has
@@ -488,4 +492,4 @@ class JointStateTap:
         return stamps, q, qd
 
     def close(self) -> None:
-        self.node.destroy_node()
+        self.node.destroy_subscription(self.sub)

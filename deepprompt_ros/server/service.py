@@ -7,6 +7,9 @@ checks them (every invalid request raises
 stores conditioned and blended distributions in the handle store
 (:mod:`deepprompt_ros.server.handles`) and turns a handle into the
 :class:`~deepprompt_ros.execution.plan.ExecutionPlan` the control loop runs.
+
+One class slightly over 400 lines: its five operations share the request checks and the handle
+store, and each is a short method over :mod:`~deepprompt_ros.primitive` operations.
 """
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """Everything the nodes do around rclpy's public API, each piece in a module of its own with a test
-of its own (``test/test_fastpath_<module>.py``):
+of its own (``test/test_ros_fastpath_<module>.py``):
 
 * :mod:`.wire` -- serialized message templates and the joint-command reader (hand-written CDR),
   checked byte for byte against ``rclpy.serialization``;

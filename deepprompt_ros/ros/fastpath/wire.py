@@ -13,7 +13,7 @@ and each call writes the current stamp and numbers there (rclpy publishers accep
 CDR as rclpy writes it (little endian): a 4-byte encapsulation header (``00 01``), then the
 fields in order, each aligned to its size relative to the end of that header; a string is a
 uint32 length (terminating NUL included) then its bytes; a sequence is a uint32 count then its
-elements. ``test/test_fastpath_wire.py`` checks every class byte for byte against
+elements. ``test/test_ros_fastpath_wire.py`` checks every class byte for byte against
 ``serialize_message`` (and ``deserialize_message`` for the reader) over random messages.
 """
 from __future__ import annotations

@@ -7,6 +7,7 @@ result, JointTrajectory rules, command stream within the limits), cancel, SetPha
 moving, preemption, malformed requests of each kind (the server keeps serving), stale
 joint_states."""
 import pathlib
+import shutil
 import time
 
 import numpy as np
@@ -40,20 +41,6 @@ SRV = "/primitive_server"
 JTC_TOPIC = "/joint_trajectory_controller/joint_trajectory"
 
 
-def train_tiny_reach(path: pathlib.Path) -> pathlib.Path:
-    """6-joint Gen3 lite reaching demos from home, final offset linear in the 3-D 'object' context."""
-    rng = np.random.default_rng(0)
-    x = np.linspace(0, 1, 50)
-    s = 10 * x**3 - 15 * x**4 + 6 * x**5
-    a = rng.uniform(-1, 1, (6, 3))
-    demos = [Demonstration(f"d{i}", x * 6.0, SPEC.home + s[:, None] * (a @ c)[None, :] * 0.6, SPEC.joint_names,
-                           {"object": c[None]}) for i, c in enumerate(rng.uniform(-0.5, 0.5, (40, 3)))]
-    train(DemoDataset(tuple(demos), source="tiny reach"),
-          TrainConfig(steps=300, latent_dim=8, hidden=32, val_every=300, n_points=50, max_via_points=5, threads=1),
-          out_path=path, log=lambda m: None)
-    return path
-
-
 def one_joint_model(path: pathlib.Path) -> pathlib.Path:
     torch.manual_seed(0)
     net = DeepProMPNet(ModelConfig(n_joints=1, latent_dim=4, hidden=8))
@@ -62,9 +49,10 @@ def one_joint_model(path: pathlib.Path) -> pathlib.Path:
 
 
 @pytest.fixture(scope="module")
-def setup(tmp_path_factory):
+def setup(tmp_path_factory, tiny_reach_model):
     tmp = tmp_path_factory.mktemp("primitive_server")
-    reach, sine = train_tiny_reach(tmp / "reach.safetensors"), one_joint_model(tmp / "sine.safetensors")
+    reach = pathlib.Path(shutil.copy(tiny_reach_model, tmp / "reach.safetensors"))
+    sine = one_joint_model(tmp / "sine.safetensors")
     prims = tmp / "primitives.yaml"
     prims.write_text(yaml.safe_dump({"primitives": [{"name": "reach", "model": str(reach)},
                                                     {"name": "sine", "model": str(sine)}]}))

@@ -20,7 +20,7 @@ from rclpy.action import ActionClient
 
 from deepprompt_ros.ros.testing import NodeProcess, RosTestClient, isolated_ros_env
 
-from test_primitive_server_node import train_tiny_reach
+from conftest import train_tiny_reach
 
 SRV = "/primitive_server"
 CHILD = re.compile(r"control loop running in its own process \(pid (\d+)\)")
