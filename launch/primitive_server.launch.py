@@ -5,23 +5,10 @@ JointTrajectory controller the server streams to.
         [robot:=gen3_lite] [controller:=joint_trajectory_controller] [primitives_file:=/path/to/primitives.yaml]
 
 The nodes, their parameter files and parameters come from deepprompt_ros.bringup (launch
-'primitive_server'); this file only declares the arguments and turns the description into Node actions.
+'primitive_server'); deepprompt_ros.ros.launch_description turns it into launch actions.
 """
-from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, OpaqueFunction
-from launch.substitutions import LaunchConfiguration
-from launch_ros.actions import Node
-
-from deepprompt_ros import bringup
-
-LAUNCH = "primitive_server"
+from deepprompt_ros.ros.launch_description import launch_description
 
 
-def _nodes(context, *args, **kwargs):
-    values = {a.name: LaunchConfiguration(a.name).perform(context) for a in bringup.arguments(LAUNCH)}
-    return [Node(**node.launch_kwargs()) for node in bringup.nodes(LAUNCH, values)]
-
-
-def generate_launch_description() -> LaunchDescription:
-    return LaunchDescription([DeclareLaunchArgument(**kw) for kw in bringup.launch_argument_kwargs(LAUNCH)]
-                             + [OpaqueFunction(function=_nodes)])
+def generate_launch_description():
+    return launch_description("primitive_server")

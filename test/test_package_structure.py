@@ -11,7 +11,8 @@ import pytest
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 PKG = ROOT / "deepprompt_ros"
 ROS_ONLY = ("rclpy", "rosidl_runtime_py", "deepprompt_msgs", "rcl_interfaces", "builtin_interfaces",
-            "sensor_msgs", "std_msgs", "std_srvs", "geometry_msgs", "trajectory_msgs", "rosgraph_msgs")
+            "sensor_msgs", "std_msgs", "std_srvs", "geometry_msgs", "trajectory_msgs", "rosgraph_msgs",
+            "launch", "launch_ros")
 
 
 def _module_name(path: pathlib.Path) -> str:
@@ -121,7 +122,7 @@ LAYERS: dict[str, tuple[str, ...]] = {
     "paths": (),
     "bringup": ("common", "paths"),
     "run_main": ("bringup",),
-    "ros": ("server", "recording", "sim", "paths"),
+    "ros": ("server", "recording", "sim", "bringup"),
 }
 
 
