@@ -26,7 +26,7 @@ experiments-quick: setup
 run: setup
 	$(PY) -m deepprompt_ros.run_main
 
-# Reproduce the shipped primitives in models/ (seeded; see README "Shipped models").
+# Reproduce the shipped primitives in models/ (seeded: the same command gives the same file contents).
 TRAIN := $(PY) -m deepprompt_ros.training.cli
 models: train-sine train-reach train-shake
 train-sine: setup

@@ -8,19 +8,23 @@ Glossary (paper notation):
   ω  importance weight of a via-point / context (0 removes it)
   τ  time map t -> x (temporal modulation)
 
-Subpackages, by concept (imports run one way, from the top of this list down to the bottom):
-  model       the network, Bayesian aggregation, phase features, checkpoints
-  primitive   DeepProMP operations: condition, decode, sample, blend, refine, time maps
-  training    training configuration, objectives, the loop, basis initialization
-  evaluation  reconstruction metrics used by the experiments and by ProMP's validation
-  baselines   ProMP, CNMP, VAE-CNMP and their Indep variants behind one interface
-  data        demonstration format, I/O, synthetic families, built-in datasets
+Subpackages, by concept, from the bottom layer up: each imports only subpackages listed before it
+(one exception: ``data.builtin``, the registry of the built-in data sets, sits above ``sim.tasks``,
+whose generators it lists; test/test_package_structure.py keeps the order):
+  common      the one parameter scheme, the joint-list formatter, result codes
+  data        demonstration format, I/O, synthetic families, built-in datasets (data.builtin)
   robots      robot specs from URDF, kinematics, inverse kinematics, geometry
   sim         the PyBullet simulation and the task-data generators (sim.tasks)
+  model       the network, Bayesian aggregation, phase features, checkpoints
+  primitive   DeepProMP operations: condition, decode, sample, blend, refine, time maps
+  evaluation  reconstruction metrics used by the experiments (and ProMP's validation)
+  training    training configuration, objectives, the loop, basis initialization
+  baselines   ProMP, CNMP, VAE-CNMP and their Indep variants behind one interface
   execution   joint limits, phase clock, reference, Ruckig streamer, the ROS-free stream loop
   server      server configuration, primitives file, handles, request types, service logic
   recording   kinesthetic recording: demo buffer, images, MCAP bag writer
-  ros         the only modules that import rclpy: the nodes and their message conversions
+  bringup     the one description of the nodes the launch files and `make run` start
+  ros         the only modules that import rclpy: the nodes, message conversions, ros.fastpath
 
 Names below are imported lazily (torch, pinocchio and pybullet load only when used).
 """

@@ -29,7 +29,7 @@ NODES = (
 #: Per-object parameters of sim_bridge, ``objects.<name>.<field>``.
 SIM_OBJECTS = "deepprompt_ros.sim.bridge_config:ObjectConfig"
 #: The training configuration: the package's export of ``TrainConfig`` (``deepprompt_ros._EXPORTS``
-#: says where it lives). Its section is written once its fields are made with ``param()``.
+#: says where it lives).
 TRAINING = "deepprompt_ros:TrainConfig"
 
 HEADER = f"""# Parameters

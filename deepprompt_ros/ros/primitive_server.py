@@ -10,11 +10,13 @@ Interfaces (``~`` = the node's name, ``/primitive_server`` by default):
   ``~/list_primitives`` (ListPrimitives), ``~/set_phase_rate`` (SetPhaseRate);
 * action ``~/execute`` (Execute): feedback phase / cycle / phase rate / tracking error, result
   code + message, cancelable, a new goal preempts the running one;
-* subscribes ``joint_states`` (sensor_msgs/JointState, the measured robot state);
+* subscribes ``joint_states`` (sensor_msgs/JointState, the measured robot state) and
 * publishes ``<controller>/joint_trajectory`` (trajectory_msgs/JointTrajectory: a few future
   samples of the command stream with positions, velocities, accelerations, then a braking tail to
   rest) and ``joint_command`` (sensor_msgs/JointState, one per control tick: names = the robot's
-  joints, position + velocity; what sim_bridge consumes).
+  joints, position + velocity; what sim_bridge consumes). With ``loop_process: true`` (the
+  default) these topics belong to the control process's node ``<node name>_control`` (``ros2
+  node info /primitive_server_control`` lists them), resolved in this node's namespace with its remappings.
 
 Processes and threads: by default (``loop_process: true``) the command stream runs in a child
 process, ``python -m deepprompt_ros.ros.control_process`` (threads ``control_loop`` and
