@@ -199,19 +199,22 @@ def role_subscriber(out: str, gate: str, states: bool, priority: int = 0) -> Non
     from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import JointState
 
+    from deepprompt_ros.ros.fastpath.polled import NotExecuted, take_all
+
     rclpy, node, _ = _role_node("bench_stream_subscriber")  # its executor is never spun: messages are taken
-    qos = QoSProfile(depth=1000)
-    subs = {"cmd": node.create_subscription(JointState, "joint_command", lambda m: None, qos, raw=True)}
+    qos, group = QoSProfile(depth=1000), NotExecuted()
+    subs = {"cmd": node.create_subscription(JointState, "joint_command", lambda m: None, qos, raw=True,
+                                            callback_group=group)}
     if states:
-        subs["js"] = node.create_subscription(JointState, "joint_states", lambda m: None, qos, raw=True)
+        subs["js"] = node.create_subscription(JointState, "joint_states", lambda m: None, qos, raw=True,
+                                              callback_group=group)
     rec = {k: [] for k in subs}
 
     def take(keep: bool) -> None:
         for k, sub in subs.items():
-            with sub.handle:
-                while (m := sub.handle.take_message(sub.msg_type, True)) is not None:
-                    if keep:
-                        rec[k].append((m[1]["received_timestamp"] or time.time_ns(), m[0]))
+            for data, info in take_all(sub):
+                if keep:
+                    rec[k].append((info["received_timestamp"] or time.time_ns(), data))
 
     pathlib.Path(gate + ".ready").write_text("ready")
     go, stop = pathlib.Path(gate + ".go"), pathlib.Path(gate + ".stop")
@@ -261,35 +264,18 @@ def role_client(out: str, gate: str, seconds: float, min_calls: int, service: st
 
     Round trip: from just before the request is sent to the moment its response has been taken in
     this process. The client waits on its own rcl wait set (what an rclpy executor does inside, without
-    the executor's per-wake bookkeeping) and sleeps between
-    calls.
+    the executor's per-wake bookkeeping; see ros.fastpath.service_client) and sleeps between calls.
     """
     from deepprompt_msgs.srv import Condition, ListPrimitives
-    from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 
     from deepprompt_ros.robots.spec import load_robot
+    from deepprompt_ros.ros.fastpath.service_client import BlockingClient
 
-    rclpy, node, ex = _role_node("bench_condition_client")
+    rclpy, node, _ = _role_node("bench_condition_client")  # its executor is never spun: the client waits itself
     srv_type = ListPrimitives if service == "list_primitives" else Condition
-    cli = node.create_client(srv_type, f"{SERVER}/{service}")
-    cli.wait_for_service(timeout_sec=60)
-    ex.remove_node(node)  # from here on the client's wait set below is the only waiter
+    cli = BlockingClient(node, srv_type, f"{SERVER}/{service}")
+    cli.wait_for_service(timeout=60)
     home = load_robot("gen3_lite").home
-    wait_set = _rclpy.WaitSet(0, 0, 0, 1, 0, 0, node.context.handle)  # subs, guards, timers, clients, ...
-
-    def call(req, timeout: float = 30.0):
-        with cli.handle:
-            seq = cli.handle.send_request(req)
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            with cli.handle, node.context.handle:
-                wait_set.clear_entities()
-                wait_set.add_client(cli.handle)
-                wait_set.wait(int(0.1 * 1e9))
-                header, response = cli.handle.take_response(srv_type.Response)
-            if header is not None and header.request_id.sequence_number == seq:
-                return response
-        raise TimeoutError(f"no {service} response within {timeout} s")
 
     pathlib.Path(gate + ".ready").write_text("ready")
     _wait_file(pathlib.Path(gate + ".go"))
@@ -302,10 +288,11 @@ def role_client(out: str, gate: str, seconds: float, min_calls: int, service: st
         time.sleep(max(0.0, next_call - time.monotonic()))
         next_call += CALL_PERIOD
         t0 = time.perf_counter()
-        res = call(req)
+        res = cli.call(req)
         rtt.append(time.perf_counter() - t0)
         fails += not res.success
     _save(out, rtt=np.array(rtt), fails=fails)
+    cli.destroy()
     node.destroy_node()
     rclpy.try_shutdown()
 

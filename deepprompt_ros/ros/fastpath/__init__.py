@@ -7,6 +7,8 @@ of its own (``test/test_ros_fastpath_<module>.py``):
   messages directly (rclpy's private subscription handle);
 * :mod:`.service_thread` -- services answered by a thread of their own on an rcl wait set (rclpy's
   private ``implementation_singleton``);
+* :mod:`.service_client` -- its client-side mirror: a service call whose caller waits for the
+  response on a wait set of its own (used by the benchmark's Condition client);
 * :mod:`.realtime` -- real-time scheduling, CPU affinity, the interpreter's switch interval,
   garbage-collector freezing, OS thread names.
 
