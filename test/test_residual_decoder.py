@@ -100,11 +100,9 @@ def test_map_refinement_of_a_linear_decoder_is_latent_gaussian_conditioning():
     # the posterior prior: Mahalanobis distance to q(z | via-points)
     P = 1.0 / post.var
     z_post = np.linalg.solve(J.T @ J / s ** 2 + np.diag(P), J.T @ (y - c).reshape(-1) / s ** 2 + P * post.mean)
-    via_refine = prim.refine(post, x, y, objective="map", map_prior="posterior", noise_std=s)
-    np.testing.assert_allclose(via_refine.latent.mean, z_post, atol=1e-9)
-    assert via_refine.error_history[-1] == pytest.approx(via_refine.max_error)
-    with pytest.raises(ValueError, match="objective"):
-        prim.refine(post, x, y, objective="nope")
+    res_post = prim.refine_map(post, x, y, prior="posterior", noise_std=s)
+    np.testing.assert_allclose(res_post.latent.mean, z_post, atol=1e-9)
+    assert res_post.error_history[-1] == pytest.approx(res_post.max_error)
     with pytest.raises(ValueError, match="prior"):
         prim.refine_map(post, x, y, prior="nope")
 

@@ -3,8 +3,9 @@
 
 :class:`DeepProMP` validates inputs in the robot's units and evaluates the network through its
 float64 numpy twin (:class:`deepprompt_ros.primitive.numpy_net.NumpyNet`); images go through the
-torch CNN. Blending is :func:`deepprompt_ros.primitive.blending.blend_gaussians`, refinement the
-two algorithms of :mod:`deepprompt_ros.primitive.refinement`.
+torch CNN. Blending is :func:`deepprompt_ros.primitive.blending.blend_gaussians`; the two
+refinements of :mod:`deepprompt_ros.primitive.refinement` are two methods, :meth:`DeepProMP.refine`
+(meet the via-points exactly) and :meth:`DeepProMP.refine_map` (the MAP latent).
 
 Units: phases x in [0, 1]; joint positions in the robot's units (rad); contexts in their raw
 units. Every public method validates its inputs and raises ``ValueError`` saying what is expected.
@@ -317,28 +318,14 @@ class DeepProMP:
         return self.decode_per_phase(z, x)
 
     # ------------------------------------------------------------------ refinement
-    def refine_map(self, latent: LatentGaussian, via_x, via_y, joint_mask=None, prior: str = "posterior",
-                   noise_std=None, max_iterations: int = 50, tol: float = 1e-6,
-                   latent_bound: float = 5.0) -> RefinementResult:
-        """MAP refinement (:func:`deepprompt_ros.primitive.refinement.refine_map`): the latent that
-        trades meeting the via-points for staying where the model has seen demonstrations.
-        ``prior`` "posterior" (``latent``) or "standard" (N(0, I)); ``noise_std`` (d,) joint units."""
-        return refine_map(self, latent, via_x, via_y, joint_mask, prior=prior, noise_std=noise_std,
-                          max_iterations=max_iterations, tol=tol, latent_bound=latent_bound)
-
     def refine(self, latent: LatentGaussian, via_x, via_y, joint_mask=None, max_iterations: int = 200,
                tol: float = 1e-6, n_samples: int = 16, seed: int = 0, sigma_target: np.ndarray | None = None,
                sigma_iterations: int = 5, max_restarts: int = 5,
-               smoothing_schedule: Sequence[float] = (3.0, 10.0, 30.0, 100.0), latent_bound: float = 5.0,
-               objective: str = "exact", map_prior: str = "posterior", noise_std=None) -> RefinementResult:
-        """Deployment-time refinement of (μ̃, σ̃) (paper Eq. 5 and appendix), by ``objective``:
-
-        ``"exact"`` (default) meets the via-points to ``tol``:
-        :func:`deepprompt_ros.primitive.refinement.refine_exact` (``max_iterations``, ``tol``,
-        ``n_samples``, ``seed``, ``sigma_target``, ``sigma_iterations``, ``max_restarts``,
-        ``smoothing_schedule``, ``latent_bound``). ``"map"`` returns the MAP latent of a regularized
-        least-squares problem: :meth:`refine_map` (``map_prior``, ``noise_std``, ``max_iterations``,
-        ``tol``, ``latent_bound``).
+               smoothing_schedule: Sequence[float] = (3.0, 10.0, 30.0, 100.0),
+               latent_bound: float = 5.0) -> RefinementResult:
+        """Deployment-time refinement of (μ̃, σ̃) that meets the via-points to ``tol`` (paper Eq. 5
+        and appendix): :func:`deepprompt_ros.primitive.refinement.refine_exact`, where the other
+        parameters are described. :meth:`refine_map` is the regularized (MAP) alternative.
 
         Parameters
         ----------
@@ -352,12 +339,26 @@ class DeepProMP:
         RefinementResult; ``reachable=False`` with the best fit when the via-points cannot all be
         met (never a silent miss).
         """
-        if objective == "map":
-            return self.refine_map(latent, via_x, via_y, joint_mask, prior=map_prior, noise_std=noise_std,
-                                   max_iterations=max_iterations, tol=tol, latent_bound=latent_bound)
-        if objective != "exact":
-            raise ValueError(f"refinement objective '{objective}' unknown; expected 'exact' or 'map'")
         return refine_exact(self, latent, via_x, via_y, joint_mask, max_iterations=max_iterations, tol=tol,
                             n_samples=n_samples, seed=seed, sigma_target=sigma_target,
                             sigma_iterations=sigma_iterations, max_restarts=max_restarts,
                             smoothing_schedule=smoothing_schedule, latent_bound=latent_bound)
+
+    def refine_map(self, latent: LatentGaussian, via_x, via_y, joint_mask=None, prior: str = "posterior",
+                   noise_std=None, max_iterations: int = 50, tol: float = 1e-6,
+                   latent_bound: float = 5.0) -> RefinementResult:
+        """MAP refinement (:func:`deepprompt_ros.primitive.refinement.refine_map`): the latent that
+        trades meeting the via-points for staying where the model has seen demonstrations.
+
+        Parameters
+        ----------
+        latent : LatentGaussian, the initialization and (``prior="posterior"``) the prior
+        via_x : array, shape (n,); via_y : array, shape (n, d)
+        joint_mask : array of bool, shape (n, d) or (d,), optional; joints to meet (default all)
+        prior : {"posterior", "standard"}
+            ``latent`` as the prior, or the model's N(0, I).
+        noise_std : float or array, shape (d,), optional
+            Via-point standard deviation in joint units (default σ_y · each joint's normalization std).
+        """
+        return refine_map(self, latent, via_x, via_y, joint_mask, prior=prior, noise_std=noise_std,
+                          max_iterations=max_iterations, tol=tol, latent_bound=latent_bound)

@@ -8,7 +8,7 @@ via-points (paper Eq. 5 and appendix), two algorithms:
 * :func:`refine_map` — the MAP latent of a regularized least-squares problem: staying where the
   model has seen demonstrations instead of meeting the via-points exactly.
 
-:meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.refine` selects one by its ``objective``.
+A :class:`~deepprompt_ros.primitive.deep_promp.DeepProMP` offers them as ``refine`` and ``refine_map``.
 Units: phases in [0, 1], joint positions in joint units (rad), μ̃ in units of the prior's std.
 """
 from __future__ import annotations
@@ -29,7 +29,8 @@ __all__ = ["RefinementResult", "refinement_inputs", "refine_exact", "refine_map"
 
 @dataclasses.dataclass(frozen=True)
 class RefinementResult:
-    """Outcome of :func:`refine_exact` / :func:`refine_map` (:meth:`DeepProMP.refine`).
+    """Outcome of :func:`refine_exact` (:meth:`DeepProMP.refine`) and :func:`refine_map`
+    (:meth:`DeepProMP.refine_map`).
 
     Attributes
     ----------
