@@ -77,25 +77,13 @@ SERVER = "/primitive_server"
 # model: the shipped reach primitive, or a tiny one trained here
 # ------------------------------------------------------------------------------------------------
 def tiny_reach_model(path: pathlib.Path, steps: int = 300) -> pathlib.Path:
-    """A small 6-joint Gen3 lite primitive with context 'object' (3), trained in seconds."""
-    from deepprompt_ros.data.demo_dataset import DemoDataset
-    from deepprompt_ros.data.demonstration import Demonstration
-    from deepprompt_ros.robots.spec import load_robot
-    from deepprompt_ros.sim.tasks.min_jerk import min_jerk
+    """A small 6-joint Gen3 lite primitive with context 'object' (3), trained in seconds on
+    :func:`~deepprompt_ros.sim.tasks.kinematic_reach.context_reach_demos`."""
+    from deepprompt_ros.sim.tasks.kinematic_reach import context_reach_demos
     from deepprompt_ros.training.config import TrainConfig
     from deepprompt_ros.training.loop import train
 
-    spec = load_robot("gen3_lite")
-    rng = np.random.default_rng(0)
-    x = np.linspace(0, 1, 50)
-    s = min_jerk(x)
-    a = rng.uniform(-1, 1, (6, 3))
-    demos = []
-    for i in range(40):
-        c = rng.uniform(-0.5, 0.5, 3)
-        q = spec.home + s[:, None] * (a @ c)[None, :] * 0.6
-        demos.append(Demonstration(f"d{i}", x * 6.0, q, spec.joint_names, {"object": c[None]}))
-    train(DemoDataset(tuple(demos), source="bench tiny reach"),
+    train(context_reach_demos(n_demos=40, n_points=50, seed=0),
           TrainConfig(steps=steps, latent_dim=8, hidden=32, val_every=steps, n_points=50, max_via_points=5,
                       threads=1), out_path=path, log=lambda m: None)
     return path

@@ -52,32 +52,17 @@ def ros_env(tmp_path_factory) -> dict[str, str]:
     return isolated_ros_env(tmp_path_factory.mktemp("ros_log"))
 
 
-def train_tiny_reach(path: pathlib.Path) -> pathlib.Path:
-    """A small trained Gen3 lite primitive: 40 six-joint reaching demos from home (minimum-jerk
-    timing), the final offset linear in the 3-D 'object' context; written to ``path``."""
-    import numpy as np
-
-    from deepprompt_ros.data.demo_dataset import DemoDataset
-    from deepprompt_ros.data.demonstration import Demonstration
-    from deepprompt_ros.robots.spec import load_robot
-    from deepprompt_ros.sim.tasks.min_jerk import min_jerk
+@pytest.fixture(scope="session")
+def tiny_reach_model(tmp_path_factory) -> pathlib.Path:
+    """A small trained Gen3 lite primitive with context 'object' (3), trained once per test session
+    on :func:`~deepprompt_ros.sim.tasks.kinematic_reach.context_reach_demos` (40 six-joint reaches
+    from home); the path of its model file. Tests that serve it copy it to a folder of their own."""
+    from deepprompt_ros.sim.tasks.kinematic_reach import context_reach_demos
     from deepprompt_ros.training.config import TrainConfig
     from deepprompt_ros.training.loop import train
 
-    spec = load_robot("gen3_lite")
-    rng = np.random.default_rng(0)
-    x = np.linspace(0, 1, 50)
-    s = min_jerk(x)
-    a = rng.uniform(-1, 1, (6, 3))
-    demos = [Demonstration(f"d{i}", x * 6.0, spec.home + s[:, None] * (a @ c)[None, :] * 0.6, spec.joint_names,
-                           {"object": c[None]}) for i, c in enumerate(rng.uniform(-0.5, 0.5, (40, 3)))]
-    train(DemoDataset(tuple(demos), source="tiny reach"),
+    path = tmp_path_factory.mktemp("tiny_reach") / "reach.safetensors"
+    train(context_reach_demos(n_demos=40, n_points=50, seed=0),
           TrainConfig(steps=300, latent_dim=8, hidden=32, val_every=300, n_points=50, max_via_points=5, threads=1),
           out_path=path, log=lambda m: None)
     return path
-
-
-@pytest.fixture(scope="session")
-def tiny_reach_model(tmp_path_factory) -> pathlib.Path:
-    """:func:`train_tiny_reach`, trained once per test session."""
-    return train_tiny_reach(tmp_path_factory.mktemp("tiny_reach") / "reach.safetensors")

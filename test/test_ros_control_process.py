@@ -7,6 +7,7 @@ import contextlib
 import os
 import pathlib
 import re
+import shutil
 import signal
 import time
 
@@ -20,8 +21,6 @@ from rclpy.action import ActionClient
 
 from deepprompt_ros.ros.testing import NodeProcess, RosTestClient, isolated_ros_env
 
-from conftest import train_tiny_reach
-
 SRV = "/primitive_server"
 CHILD = re.compile(r"control loop running in its own process \(pid (\d+)\)")
 
@@ -34,10 +33,11 @@ def alive(pid: int) -> bool:
         return False
 
 
-def start(tmp, name, params):
+def start(tmp, name, params, model):
+    """sim_bridge + primitive_server serving ``model`` (copied into ``tmp``) as 'reach'."""
     reach = tmp / "reach.safetensors"
     if not reach.exists():
-        train_tiny_reach(reach)
+        shutil.copy(model, reach)
     prims = tmp / "primitives.yaml"
     prims.write_text(yaml.safe_dump({"primitives": [{"name": "reach", "model": str(reach)}]}))
     env = isolated_ros_env(tmp / f"log_{name}")
@@ -63,9 +63,23 @@ def run_goal(client, ac, server, duration, feedback=None, before_result=None):
     return res.result().result
 
 
+def run_goal_once_state_arrives(client, ac, server, duration, timeout=10.0):
+    """:func:`run_goal`, sent again while (and only while) it is refused because the server has not
+    yet seen a joint state: the child logs "receiving joint_states" as soon as it receives them, and
+    the server learns it from the child's next status message, which can come a little later.
+    Any other result, or the refusal after ``timeout`` s, is returned."""
+    end = time.monotonic() + timeout
+    while True:
+        res = run_goal(client, ac, server, duration)
+        if not (res.code.value == ResultCode.ROBOT_STATE_STALE and "no joint_states received" in res.message
+                and time.monotonic() < end):
+            return res
+        client.spin_for(0.2)
+
+
 @pytest.fixture(scope="module")
-def nodes(tmp_path_factory):
-    with serving(tmp_path_factory.mktemp("control_process"), "child", {}) as (client, ac, server):
+def nodes(tmp_path_factory, tiny_reach_model):
+    with serving(tmp_path_factory.mktemp("control_process"), "child", {}, tiny_reach_model) as (client, ac, server):
         yield dict(client=client, ac=ac, server=server)
 
 
@@ -125,7 +139,7 @@ def test_child_crash_aborts_the_goal_and_a_new_child_takes_over(nodes):
     assert new != pid and alive(new) and "control process restarted" in server.output()
     # the new child streams: an execution succeeds
     assert client.wait_for(lambda: server.output().count("receiving joint_states") >= 2, 30), server.output_tail()
-    res = run_goal(client, ac, server, 1.5)
+    res = run_goal_once_state_arrives(client, ac, server, 1.5)
     assert res.success, res.message
 
 
@@ -141,10 +155,10 @@ def test_child_dies_with_the_server(nodes):
 
 
 @contextlib.contextmanager
-def serving(tmp_path, name, params):
-    """sim_bridge + primitive_server with ``params``, ready (action server up, joint_states received):
-    yields (client, action client, server); stops both processes."""
-    env, sim, server = start(tmp_path, name, params)
+def serving(tmp_path, name, params, model):
+    """sim_bridge + primitive_server with ``params`` serving ``model``, ready (action server up,
+    joint_states received): yields (client, action client, server); stops both processes."""
+    env, sim, server = start(tmp_path, name, params, model)
     try:
         with RosTestClient(env) as client:
             ac = ActionClient(client.node, Execute, f"{SRV}/execute")
@@ -158,19 +172,20 @@ def serving(tmp_path, name, params):
 
 
 @pytest.mark.parametrize("fast_path", [True, False], ids=["fast_path", "plain_rclpy"])
-def test_in_process_loop_still_executes(tmp_path, fast_path):
-    with serving(tmp_path, "inproc", {"loop_process": False, "fast_path": fast_path}) as (client, ac, server):
+def test_in_process_loop_still_executes(tmp_path, tiny_reach_model, fast_path):
+    with serving(tmp_path, "inproc", {"loop_process": False, "fast_path": fast_path},
+                 tiny_reach_model) as (client, ac, server):
         res = run_goal(client, ac, server, 1.5)
         assert res.success, res.message
         assert "in this process" in server.output() and not CHILD.search(server.output())
 
 
-def test_control_cpu_pins_every_thread_and_a_missing_cpu_is_a_warning(tmp_path):
+def test_control_cpu_pins_every_thread_and_a_missing_cpu_is_a_warning(tmp_path, tiny_reach_model):
     """control_cpu: N pins the control process (all its threads, DDS included) to CPU N; a CPU the
     machine does not have is a warning and the loop still executes on any CPU."""
     cpu = max(os.sched_getaffinity(0))
     for name, value in (("pinned", cpu), ("absent", 1023)):
-        with serving(tmp_path, name, {"control_cpu": value}) as (client, ac, server):
+        with serving(tmp_path, name, {"control_cpu": value}, tiny_reach_model) as (client, ac, server):
             res = run_goal(client, ac, server, 0.5)
             assert res.success, res.message
             pid = int(CHILD.findall(server.output())[-1])

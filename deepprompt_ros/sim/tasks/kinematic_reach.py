@@ -8,6 +8,10 @@ damped-least-squares inverse kinematics on the Pinocchio model
 (:func:`~deepprompt_ros.sim.tasks.min_jerk.min_jerk`). Each demonstration carries the object's
 position as its context ``object``. No simulator runs: the demonstrations are the plan itself.
 
+:func:`context_reach_demos` is a smaller family for tests and benchmarks that need a trained
+primitive within seconds: joint-space reaches from home whose final offset is linear in a 3-D
+``object`` context (no IK).
+
 It lives with the task demonstrators rather than in :mod:`deepprompt_ros.data` because it is one of
 them: a scripted demonstrator built on a robot model, the IK and the minimum-jerk profile that the
 PyBullet tasks share, and ``data`` sits below ``robots`` in the import order (the registry of
@@ -24,7 +28,7 @@ from deepprompt_ros.robots.kinematics import RobotKinematics
 from deepprompt_ros.robots.spec import load_robot
 from deepprompt_ros.sim.tasks.min_jerk import min_jerk
 
-__all__ = ["reach_demos"]
+__all__ = ["reach_demos", "context_reach_demos"]
 
 
 # Position-only damped least squares: 1 mrad from the limits, 200 steps, λ = 0.01, 10 µm tolerance,
@@ -68,3 +72,23 @@ def reach_demos(robot: str = "gen3_lite", n_demos: int = 120, n_points: int = 10
         demos.append(Demonstration(name=f"{robot}_reach_{len(demos):04d}", t=s * duration, q=path,
                                    joint_names=spec.joint_names, contexts={"object": obj[None, :]}))
     return DemoDataset(tuple(demos), source=f"reach_demos(robot={robot}, seed={seed})")
+
+
+def context_reach_demos(n_demos: int = 40, n_points: int = 50, seed: int = 0) -> DemoDataset:
+    """Joint-space reaches of the Gen3 lite (6 joints) from its home configuration over 6 s, with
+    minimum-jerk timing: q(t) = home + 0.6 s(t/6) A c, where the context ``object`` c (3,) is
+    uniform in [-0.5, 0.5]³ per demo and A (6, 3) is uniform in [-1, 1], drawn once per ``seed``.
+
+    Returns
+    -------
+    DemoDataset of ``n_demos`` demos named ``d0``, ``d1``, ..., ``n_points`` samples each,
+    context ``object`` (1, 3).
+    """
+    spec = load_robot("gen3_lite")
+    rng = np.random.default_rng(seed)
+    x = np.linspace(0, 1, n_points)
+    s = min_jerk(x)
+    a = rng.uniform(-1, 1, (6, 3))
+    demos = [Demonstration(f"d{i}", x * 6.0, spec.home + s[:, None] * (a @ c)[None, :] * 0.6, spec.joint_names,
+                           {"object": c[None]}) for i, c in enumerate(rng.uniform(-0.5, 0.5, (n_demos, 3)))]
+    return DemoDataset(tuple(demos), source=f"context_reach_demos(seed={seed})")
