@@ -1,7 +1,13 @@
 """package.xml names what the code needs: every ROS package imported anywhere in deepprompt_ros/ and
-launch/ (late imports included) as a dependency, the system Python packages by rosdep key, the
-pip-only ones in a comment; LICENSE is the BSD-3-Clause text package.xml and setup.py declare."""
+launch/ (late imports included) and every package whose node a launch starts as a dependency, the
+system Python packages by rosdep key, the pip-only ones in a comment; LICENSE is the BSD-3-Clause
+text package.xml and setup.py declare.
+
+ROS tier: which imports are ROS packages is read from the installed ROS packages (the ament index
+of every prefix of AMENT_PREFIX_PATH, as a sourced Jazzy or the Makefile sets it, then this
+interpreter's prefix where the ROS wheels are installed)."""
 import ast
+import os
 import pathlib
 import re
 import sys
@@ -34,10 +40,21 @@ def _imports() -> dict[str, set[str]]:
     return found
 
 
+def _prefixes() -> list[pathlib.Path]:
+    """The prefixes of AMENT_PREFIX_PATH (an apt Jazzy: /opt/ros/jazzy), then sys.prefix."""
+    return [pathlib.Path(p) for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p] + [
+        pathlib.Path(sys.prefix)]
+
+
 def _is_ros_package(name: str) -> bool:
-    """A package of the ament index of this interpreter's prefix (where the ROS wheels and
-    deepprompt_msgs are installed)."""
-    return (pathlib.Path(sys.prefix) / "share" / name / "package.xml").is_file() or name in ROS_NOT_INSTALLED
+    """An installed ROS package: in the ament index (or with a share/<name>/package.xml) of a prefix.
+    The pip-only imports are not, even where an apt package of the name is installed (pinocchio and
+    ruckig under /opt/ros/jazzy: other releases than the pins)."""
+    if name in PIP_ONLY:
+        return False
+    return name in ROS_NOT_INSTALLED or any(
+        (prefix / "share" / "ament_index" / "resource_index" / "packages" / name).is_file()
+        or (prefix / "share" / name / "package.xml").is_file() for prefix in _prefixes())
 
 
 def _package():
@@ -51,6 +68,15 @@ def test_every_imported_ros_package_is_a_dependency():
     declared = {d.name for d in _package().exec_depends}
     missing = {n: sorted(imports[n]) for n in sorted(ros - declared)}
     assert not missing, f"add <exec_depend> to package.xml for the ROS packages imported by: {missing}"
+
+
+def test_packages_of_launched_nodes_are_dependencies():
+    from deepprompt_ros import bringup
+
+    launched = {n.package for launch in bringup.LAUNCHES for n in bringup.nodes(launch)} - {"deepprompt_ros"}
+    assert "robot_state_publisher" in launched
+    declared = {d.name for d in _package().exec_depends}
+    assert launched <= declared, f"add <exec_depend> to package.xml for {sorted(launched - declared)}"
 
 
 def test_python_dependencies_are_rosdep_keys_or_named_pip_only():
