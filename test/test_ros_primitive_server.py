@@ -63,7 +63,7 @@ def setup(tmp_path_factory, tiny_reach_model):
             "camera.enabled": False, "publish_clock": False})
         procs["server"] = NodeProcess.start_module("deepprompt_ros.ros.primitive_server", env, params={
             "primitives_file": str(prims), "max_via_points": 1000,
-            "stale_timeout": 1.0})  # on a loaded 2-core machine the Python sim can pause > 0.5 s
+            "stale_timeout": 1.0})  # above the default 0.2 s: pauses of the Python sim are not under test
         # refusals at start-up, in parallel: no servable primitive / an invalid parameter
         only_sine = tmp / "only_sine.yaml"
         only_sine.write_text(yaml.safe_dump({"primitives": [{"name": "sine", "model": str(sine)}]}))
@@ -217,7 +217,7 @@ def test_execute_streams_valid_controller_messages_and_succeeds(setup):
     res = result(setup, fut)
     assert res.success and res.code.value == ResultCode.SUCCESS, res.message
     assert res.final_phase == 1.0 and res.cycles_completed == 1
-    assert 0 < res.max_tracking_error < 0.3  # the simulated arm follows (lag of a loaded Python sim)
+    assert 0 < res.max_tracking_error < 0.3  # the simulated arm follows, with its position loop's lag
     phases = [f.phase for f in fb]
     assert len(fb) >= 20 and phases[-1] > 0.8 and np.all(np.diff(phases) >= -1e-12)
     assert all(abs(f.phase_rate - 1 / 3.0) < 1e-9 for f in fb if 0.05 < f.phase < 0.95)
@@ -402,7 +402,11 @@ def test_benchmark_quick_mode_runs_and_reports_every_metric(setup):
     assert all(float(table[f"cpu_{p}_pct{mode}"]) > 0 for p in ("sim_bridge", "server", "subscriber", "client")
                for mode in ("", "_plain"))
     assert float(table["stream_hz_plain"]) > 0
-    assert float(table.get("server_gc_max_ms", 0.0)) < 50.0
+    for mode in ("", "_plain"):  # every call of the client answered, in both modes
+        assert int(table[f"srv_calls{mode}"]) >= 20 and int(table[f"srv_failures{mode}"]) == 0
+    # the server's log gave its collections in both modes (the figures are required, not defaulted)
+    for mode in ("", "_plain"):
+        assert int(table[f"server_gc_count{mode}"]) >= 0 and float(table[f"server_gc_max_ms{mode}"]) < 50.0
     assert table["srv_service"] == "condition"
     # --service list_primitives: the same load, round trips of a near-empty handler (the transport's share)
     out = subprocess.run([sys.executable, str(bench), "--quick", "--service", "list_primitives", "--reference-loop",
