@@ -52,6 +52,12 @@ ones and the ratios):
   (execution.limits.check_limits on the joint_command stream: positions, velocities, and the
   finite-difference accelerations / jerks of consecutive commands; segments split at lost
   messages) plus measured joint_states samples outside the URDF position limits by > 1e-4 rad.
+
+Length: over 400 lines because the script starts itself again for each measuring role
+(``--role subscriber | client | reference_loop``, each in its own process): the orchestrator, the
+roles and the figures computed from their recordings share its command line and constants, and
+``python bench/bench_ros.py`` stays the one thing to run. The rclpy internals it relies on are in
+:mod:`deepprompt_ros.ros.fastpath` (``polled.take_all``, ``service_client.BlockingClient``).
 """
 from __future__ import annotations
 

@@ -16,6 +16,11 @@ task                data
 ``pour``,           ``deepprompt_ros/sim/tasks/registry.py`` exists; generated splits are cached on disk
 ``kinova_pick_place`` (:func:`cached_task_split`)
 ==================  ==========================================================================
+
+Length: over 400 lines because it is the harness every experiment imports as one: run sizes, the
+task datasets with their on-disk cache and the digests that key it, training configs, and the
+tables and output files. About a third is the cache (digests of data and code); the rest are
+small helpers that a split would scatter without making any of them clearer.
 """
 from __future__ import annotations
 

@@ -31,6 +31,11 @@ Call :func:`small_data` with any :class:`TrainConfig` to measure a change of the
     from experiments.small_data import small_data
     res = small_data(TrainConfig(steps=4000, threads=1), seeds=(0, 1, 2))
     print(res.markdown())
+
+Length: over 400 lines because it is one study's protocol, read top to bottom: the error measures
+it reports, the cross-validation that chooses the residual decoder's settings, the per-seed units
+the harness runs and caches, and :func:`run`. Each piece serves this experiment alone; split, a
+reader would follow one table through several files.
 """
 from __future__ import annotations
 
@@ -170,8 +175,8 @@ def map_mse(model: DeepProMPModel, test: DemoDataset, n_via: int, noise_factor: 
             n_points: int = 100, seed: int = 0, noise_std: float | None = None) -> float:
     """MSE after :meth:`DeepProMP.refine_map` from the posterior q(z | via-points); the via-points of
     :func:`refined_mse`. Via-point noise: ONE standard deviation for all joints (rad, as ProMP's
-    via-point noise), ``noise_factor`` · σ_y · RMS of the joints' normalization stds (per-joint
-    σ_y · std measured 1.12× ProMP instead of 1.0× on seed 0: it makes the small-range joints stiff).
+    via-point noise), ``noise_factor`` · σ_y · RMS of the joints' normalization stds (a per-joint
+    σ_y · std would make the joints of small range stiff).
     ``noise_std`` (rad), if given, is used instead (``noise_factor`` is then ignored)."""
     return float(np.mean(map_errors(model, test, n_via, noise_factor, prior, n_points, seed, noise_std)))
 

@@ -32,9 +32,9 @@ KIN = RobotKinematics(SPEC)
 SRV = "/primitive_server"
 
 #: Simulated seconds per wall second. The demonstrations are stamped in simulated time, so a faster
-#: simulation would only shorten the test, but at 2 (2000 joint_states a second) on a loaded 2-core
-#: machine the recorder fell behind: it lost messages (gaps of 13-51 ms) and answered stop_recording
-#: seconds late; the simulation itself reached only ~1x. 0 (as fast as possible) takes a whole core.
+#: simulation would only shorten the test, but it multiplies the joint_states per wall second (1000
+#: per simulated second) that the recorder, a Python process, has to keep up with: behind, it loses
+#: messages and answers stop_recording late. 0 (as fast as possible) takes a whole core.
 REAL_TIME_FACTOR = 1.0
 N_DEMOS = 6
 #: Simulated times (s after start_recording) at which the guide moves to the waypoint, then to the
@@ -46,10 +46,9 @@ EXEC_DURATION = 4.0
 #: How close (max over joints, rad) the measured arm must pass to the via-point. The server streams
 #: the refined mean (which meets the via-point within 1e-6 rad) through Ruckig at 1 kHz, which tracks
 #: it within a few 1e-4 rad when the mean keeps the limits; PyBullet's position loop (gain 20/s plus
-#: velocity feed-forward) follows the stream with a lag along the path (the server reports 10-40 mrad
-#: of commanded-minus-measured on this machine, which is why the closest approach is measured, not
-#: the sample at the via time) and little across it; joint_states every 1 ms of simulated time add
-#: < 0.5 mrad at 0.5 rad/s. Measured: 0.01-0.9 mrad.
+#: velocity feed-forward) follows the stream with a lag along the path (the server logs it as
+#: commanded-minus-measured; this is why the closest approach is measured, not the sample at the via
+#: time) and little across it; joint_states every 1 ms of simulated time add < 0.5 mrad at 0.5 rad/s.
 VIA_TOLERANCE = 0.01
 
 
@@ -196,7 +195,7 @@ def test_learned_primitive_passes_through_a_via_point_on_the_arm(env, tmp, sim, 
     t_start = time.perf_counter()
     with NodeProcess.start_module("deepprompt_ros.ros.primitive_server", env, params={
             "robot": "gen3_lite", "primitives_file": str(prims), "fast_path": fast_path,
-            "stale_timeout": 1.0}) as server:  # on a loaded 2-core machine the Python sim can pause > 0.5 s
+            "stale_timeout": 1.0}) as server:  # above the default 0.2 s: pauses of the Python sim are not under test
         ac = ActionClient(client.node, Execute, f"{SRV}/execute")
         tap = JointStateTap(client)
         try:
