@@ -46,10 +46,12 @@ def test_train_cli_writes_checkpoint_with_provenance(tmp_path):
 
 
 @pytest.mark.parametrize("text, message", [
-    ("steps: -1\n", "steps must be >= 1"),
-    ("lr: fast\n", "'lr' must be float"),
-    ("learning_rate: 0.1\n", "unknown keys"),
-    ("objective: magic\n", "objective must be one of"),
+    ("steps: -1\n", "steps = -1 updates: expected a value in [1, inf]"),
+    ("lr: fast\n", "lr = 'fast': expected a number"),
+    ("lr: 0\n", "lr = 0: expected a value in (0, inf)"),
+    ("learning_rate: 0.1\n", "unknown parameter 'learning_rate'"),
+    ("objective: magic\n", "objective = 'magic': expected one of 'paper', 'np'"),
+    ("decoder_basis: 1\n", "decoder_basis = 1: expected 0 (no linear basis) or >= 2"),
     ("[1, 2\n", "not valid YAML"),
 ])
 def test_bad_training_config_is_refused(tmp_path, text, message):
@@ -147,3 +149,18 @@ def test_consistency_coverage_reaches_the_encoder_only_when_asked():
     assert grads["coverage"][0] != pytest.approx(grads["all"][0])  # precision part stays out of it
     with pytest.raises(ValueError, match="consistency_encoder"):
         TrainConfig(consistency_encoder="both")
+
+
+def test_architecture_parameters_are_declared_once_in_the_model_config():
+    from deepprompt_ros.baselines.concat_net import ConcatNetConfig
+    from deepprompt_ros.common.params import ConfigError, specs_of
+    from deepprompt_ros.model.network import ModelConfig
+
+    model = {s.name: s for s in specs_of(ModelConfig)}
+    shared = [s for s in specs_of(TrainConfig) + specs_of(ConcatNetConfig) if s.name in model]
+    assert len(shared) == 9 + 7 and all(s == model[s.name] for s in shared)
+    for make in (lambda: TrainConfig(decoder_basis=1), lambda: ModelConfig(n_joints=1, decoder_basis=1)):
+        with pytest.raises(ConfigError, match=r"decoder_basis = 1: expected 0 \(no linear basis\) or >= 2"):
+            make()
+    with pytest.raises(ValueError, match=r"sigma_y = 0.0 normalized: expected a value in \(0, inf\)"):
+        ConcatNetConfig("cnmp", 1, sigma_y=0.0)

@@ -36,7 +36,8 @@ HEADER = f"""# Parameters
 
 Generated from the parameter declarations (`deepprompt_ros.common.params`) by `{COMMAND}`;
 do not edit by hand (`test/test_parameters_doc.py` fails when this file is out of date).
-Ranges are inclusive; a list's range applies to each of its elements.
+Ranges are inclusive, except that a parenthesis excludes its bound ((0, inf): above 0); a list's
+range applies to each of its elements.
 
 ROS parameters are read once at start (read-only). An invalid value stops the node with exit
 code 2 and a message that names every invalid parameter and what is expected.

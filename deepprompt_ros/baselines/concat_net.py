@@ -12,7 +12,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from deepprompt_ros.model.network import ImageEncoder, config_from_json, config_to_json, mlp_trunk
+from deepprompt_ros.common.params import param, param_from, validate
+from deepprompt_ros.model.network import ImageEncoder, ModelConfig, config_from_json, config_to_json, mlp_trunk
 from deepprompt_ros.model.phase import phase_dim, phase_features
 
 __all__ = ["VARIANTS", "ConcatNetConfig", "ConcatEncoderNet"]
@@ -25,38 +26,27 @@ VARIANTS = ("cnmp", "vae_cnmp")
 class ConcatNetConfig:
     """Architecture of a CNMP / VAE-CNMP (stored in every file).
 
-    Attributes
-    ----------
-    variant : {"cnmp", "vae_cnmp"}
-    n_joints, phase_type, latent_dim, hidden, context_dims, image_shape, phase_harmonics :
-        as :class:`deepprompt_ros.model.network.ModelConfig` (2 hidden ReLU layers of ``hidden`` units everywhere).
-    sigma_y : float
-        VAE-CNMP's fixed decoder standard deviation (normalized units).
-    var_floor : float
-        VAE-CNMP's floor of every encoder variance σ²_i.
-    std_floor : float
-        CNMP's floor of the predicted σ_y(r, x) (normalized units): σ_y = softplus(·) + std_floor.
+    The fields it shares with :class:`deepprompt_ros.model.network.ModelConfig` (``n_joints``,
+    ``phase_type``, ``latent_dim``, ``hidden``, ``context_dims``, ``image_shape``, ``sigma_y``,
+    ``var_floor``, ``phase_harmonics``) mean the same there (2 hidden ReLU layers of ``hidden``
+    units everywhere) and are declared there; ``sigma_y`` and ``var_floor`` are VAE-CNMP's.
     """
 
-    variant: str
-    n_joints: int
-    phase_type: str = "linear"
-    latent_dim: int = 16
-    hidden: int = 128
+    variant: str = param(dataclasses.MISSING, "which network: CNMP or VAE-CNMP", choices=VARIANTS)
+    n_joints: int = param_from(ModelConfig, "n_joints")
+    phase_type: str = param_from(ModelConfig, "phase_type")
+    latent_dim: int = param_from(ModelConfig, "latent_dim")
+    hidden: int = param_from(ModelConfig, "hidden")
     context_dims: tuple[tuple[str, int], ...] = ()
     image_shape: tuple[int, int] | None = None
-    sigma_y: float = 0.05
-    var_floor: float = 1e-4
-    std_floor: float = 1e-2
-    phase_harmonics: int = 0
+    sigma_y: float = param_from(ModelConfig, "sigma_y")
+    var_floor: float = param_from(ModelConfig, "var_floor")
+    std_floor: float = param(1e-2, "CNMP's floor of the predicted σ_y(r, x): σ_y = softplus(·) + std_floor",
+                             gt=0.0, unit="normalized")
+    phase_harmonics: int = param_from(ModelConfig, "phase_harmonics")
 
     def __post_init__(self):
-        if self.variant not in VARIANTS:
-            raise ValueError(f"variant '{self.variant}' unknown; expected one of {VARIANTS}")
-        if self.n_joints < 1 or self.latent_dim < 1 or self.hidden < 1:
-            raise ValueError("n_joints, latent_dim and hidden must be >= 1")
-        if not (self.sigma_y > 0 and self.var_floor > 0 and self.std_floor > 0):
-            raise ValueError("sigma_y, var_floor and std_floor must be > 0")
+        validate(self)
 
     @property
     def phase_dim(self) -> int:

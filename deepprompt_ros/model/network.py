@@ -20,85 +20,75 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from deepprompt_ros.common.params import param, validate
 from deepprompt_ros.model.phase import PHASE_TYPES, phase_basis, phase_dim, phase_features
 
 VARIANCE_HEADS = ("softplus", "exp")
 LOGVAR_MAX = 12.0  # "exp" head: σ²_i ≤ e^12 ≈ 1.6e5 (precision ≥ 6e-6, an element can all but vanish)
 
 
+def decoder_basis_error(n_b: int) -> str:
+    """The rule of ``decoder_basis`` its range [0, inf] cannot state (one basis function per joint
+    is no basis): ``''`` when ``n_b`` is 0 or >= 2, else a message saying what is expected."""
+    return "" if n_b != 1 else f"decoder_basis = {n_b!r}: expected 0 (no linear basis) or >= 2"
+
+
 @dataclasses.dataclass(frozen=True)
 class ModelConfig:
     """Architecture of a DeepProMP (stored inside every checkpoint).
 
+    Every field but ``context_dims`` and ``image_shape`` is a parameter declared once with
+    :func:`deepprompt_ros.common.params.param` (description, range or choices); the training
+    configuration (:class:`deepprompt_ros.training.config.TrainConfig`) and the concatenating
+    baselines' network take over the ones they share with :func:`~deepprompt_ros.common.params.param_from`.
+
     Attributes
     ----------
-    n_joints : int
-        d, the number of joints.
-    phase_type : {"linear", "rhythmic"}
-        linear: x in [0, 1]; rhythmic: the network sees [sin 2πx, cos 2πx] (paper Sec. III-C).
-    latent_dim : int
-        k (16 or 32 in the paper).
-    hidden : int
-        Width of the 2 hidden ReLU layers of every MLP (128 in the paper).
     context_dims : tuple of (str, int)
         Low-dimensional context modalities and their dimensions, one encoder each.
     image_shape : (int, int) or None
         (H, W) of RGB context images, None when the model takes no images.
-    sigma_y : float
-        Fixed decoder standard deviation σ_y (normalized units).
-    var_floor : float
-        Lower bound added to every encoder variance σ²_i (keeps the aggregation finite).
-    phase_harmonics : int
-        Extra Fourier features of the phase fed to encoders and decoder: linear adds
-        [sin πhx, cos πhx] for h = 1..H to x; rhythmic uses [sin 2πhx, cos 2πhx] for h = 1..max(1, H).
-        Both keep the rhythmic phase periodic.
-    decoder_basis : int
-        n_b > 0 adds a linear-basis part to the decoder: μ_y(z, x) = Φ(x)(b + A z) + s·MLP(z, x),
-        with Φ(x) the n_b normalized RBFs in phase of :class:`deepprompt_ros.baselines.promp.ProMP`
-        (von Mises functions for a rhythmic phase; :func:`deepprompt_ros.model.phase.phase_basis`),
-        b (n_b, d) and A (n_b, d, k) learned (parameter ``basis``). The linear part is a PPCA-style
-        ProMP whose weights are b + A z; the MLP adds the nonlinearity.
-        0 (default): the plain MLP decoder of the paper.
-    basis_width : float
-        RBF standard deviation relative to the centre spacing (ProMP's ``width``).
-    residual_scale : float
-        s, the factor on the MLP part when ``decoder_basis`` > 0 (0 = the linear part only).
-    variance_head : {"softplus", "exp"}
-        How the shared head's second half r becomes σ²_i: softplus(r) + var_floor (default), or
-        exp(min(r, 12)) + var_floor. With "exp" a large σ²_i (an element that says almost nothing,
-        precision → 0) is a moderate r, reached by gradient steps of the usual size; with softplus
-        σ²_i grows only linearly in r.
+
+    Notes
+    -----
+    ``phase_harmonics`` keep a rhythmic phase periodic (h = 1..max(1, H) of [sin 2πhx, cos 2πhx]).
+
+    ``decoder_basis`` n_b > 0 adds a linear-basis part to the decoder: μ_y(z, x) = Φ(x)(b + A z) +
+    s·MLP(z, x), with Φ(x) the n_b normalized RBFs in phase of :class:`deepprompt_ros.baselines.promp.ProMP`
+    (von Mises functions for a rhythmic phase; :func:`deepprompt_ros.model.phase.phase_basis`), b (n_b, d)
+    and A (n_b, d, k) learned (parameter ``basis``). The linear part is a PPCA-style ProMP whose
+    weights are b + A z; the MLP adds the nonlinearity. 0: the plain MLP decoder of the paper.
+
+    ``variance_head`` "exp": a large σ²_i (an element that says almost nothing, precision → 0) is a
+    moderate r, reached by gradient steps of the usual size; with softplus σ²_i grows only linearly in r.
     """
 
-    n_joints: int
-    phase_type: str = "linear"
-    latent_dim: int = 16
-    hidden: int = 128
+    n_joints: int = param(dataclasses.MISSING, "d, the number of joints", min=1)
+    phase_type: str = param("linear", "linear: x in [0, 1]; rhythmic: the network sees [sin 2πx, cos 2πx] (paper "
+                                      "Sec. III-C)", choices=PHASE_TYPES)
+    latent_dim: int = param(16, "k, the dimension of the latent z (16 or 32 in the paper)", min=1)
+    hidden: int = param(128, "width of the 2 hidden ReLU layers of every encoder and of the decoder (128 in the "
+                             "paper)", min=1)
     context_dims: tuple[tuple[str, int], ...] = ()
     image_shape: tuple[int, int] | None = None
-    sigma_y: float = 0.05
-    var_floor: float = 1e-4
-    phase_harmonics: int = 0
-    decoder_basis: int = 0
-    basis_width: float = 1.0
-    residual_scale: float = 1.0
-    variance_head: str = "softplus"
+    sigma_y: float = param(0.05, "fixed decoder standard deviation σ_y of the reconstruction likelihood",
+                           gt=0.0, unit="normalized")
+    var_floor: float = param(1e-4, "lower bound added to every encoder variance σ²_i of the latent (the prior's "
+                                   "variance is 1); keeps the aggregation finite", gt=0.0)
+    phase_harmonics: int = param(0, "extra Fourier features of the phase fed to encoders and decoder: linear "
+                                    "adds [sin πhx, cos πhx] for h = 1..H, rhythmic uses h = 1..max(1, H)", min=0)
+    decoder_basis: int = param(0, "n_b: 0 = the paper's MLP decoder; >= 2 adds a linear part Φ(x)(b + A z) of n_b "
+                                  "basis functions per joint under the MLP (residual decoder)", min=0)
+    basis_width: float = param(1.0, "basis function width of the linear part relative to the centre spacing "
+                                    "(ProMP's width)", gt=0.0)
+    residual_scale: float = param(1.0, "s, the factor on the MLP part of a residual decoder (0 = the linear part "
+                                       "only)", min=0.0)
+    variance_head: str = param("softplus", "how the shared head's output r becomes σ²_i: softplus(r) + var_floor, "
+                                           "or exp(min(r, 12)) + var_floor (a large σ²_i, an element that says "
+                                           "almost nothing, is then a moderate r)", choices=VARIANCE_HEADS)
 
     def __post_init__(self):
-        if self.n_joints < 1:
-            raise ValueError(f"n_joints must be >= 1, got {self.n_joints}")
-        if self.phase_type not in PHASE_TYPES:
-            raise ValueError(f"phase_type '{self.phase_type}' unknown; expected one of {PHASE_TYPES}")
-        if self.latent_dim < 1 or self.hidden < 1:
-            raise ValueError("latent_dim and hidden must be >= 1")
-        if not self.sigma_y > 0 or not self.var_floor > 0:
-            raise ValueError("sigma_y and var_floor must be > 0")
-        if self.decoder_basis < 0 or self.decoder_basis == 1:
-            raise ValueError(f"decoder_basis must be 0 (no linear basis) or >= 2, got {self.decoder_basis}")
-        if self.variance_head not in VARIANCE_HEADS:
-            raise ValueError(f"variance_head '{self.variance_head}' unknown; expected one of {VARIANCE_HEADS}")
-        if not self.basis_width > 0 or not self.residual_scale >= 0:
-            raise ValueError("basis_width must be > 0 and residual_scale >= 0")
+        validate(self, rules=lambda c: [decoder_basis_error(c.decoder_basis)])
 
     @property
     def phase_dim(self) -> int:
