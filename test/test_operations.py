@@ -51,7 +51,7 @@ def test_distinguishing_via_points_select_the_right_mode(sine):
 
 def test_zero_crossings_give_both_modes_not_between_and_promp_falls_between(sine):
     # the paper's multimodality claim: via-points that cannot tell the modes apart leave samples on
-    # BOTH modes, not between them; ProMP's single Gaussian puts them between (README, Multimodality)
+    # BOTH modes, not between them; ProMP's single Gaussian puts them between (EXPERIMENTS.md, section 5)
     zx, zy = [0.0, 0.5, 1.0], [[0.0], [0.0], [0.0]]
     lat = sine.condition(zx, zy)
     pos, neg, gap = _modes(sine.sample(lat, X, 1000, rng=1))

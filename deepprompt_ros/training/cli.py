@@ -2,10 +2,12 @@
 
 Usage::
 
-    train --data DATASET_DIR --config config/train.yaml --out models/NAME.safetensors
+    train --data DATASET_DIR --config config/train_gen3_lite_reach.yaml --out models/NAME.safetensors
     python -m deepprompt_ros.training.cli --builtin bimodal_sine --config config/train_bimodal_sine.yaml --out ...
 
-Exit status 2 with a one-line message when the configuration or the data are refused.
+The training YAML files of the shipped models are ``config/train_*.yaml``. Exit status 2 with a
+message (``error: ...``) naming every refused key or value when the configuration or the data
+are refused.
 """
 from __future__ import annotations
 

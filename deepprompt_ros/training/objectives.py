@@ -11,7 +11,8 @@ Objectives (``TrainConfig.objective``):
 ``np``     Neural-Process form: z ~ q(z | all points + all contexts), reconstruct the demonstration,
            β KL(q(z | all) ‖ q(z | subset)). With a subset that cannot tell modes apart, q(z|subset)
            must cover every mode that is consistent with it — the property that keeps conditioned
-           samples multimodal (the paper's objective averages the modes instead; see README).
+           samples multimodal (the paper's objective averages the modes instead: EXPERIMENTS.md,
+           section 5 "Bimodal sine").
 
 Every update sub-samples which inputs are given (:func:`sample_subset_weights`): via-points (a
 random count), each context modality, images, their combinations, and sometimes nothing (the
@@ -73,7 +74,8 @@ def sample_subset_weights(cfg: TrainConfig, data: TensorData, idx: torch.Tensor,
     phases with the smallest across-demo spread: shared start points, the zero crossings of the
     bimodal sines). Such points cannot tell the demonstrations apart, so the NP objective teaches the
     encoder to give them a large σ²_i — otherwise a few of them aggregate into a narrow posterior
-    that sits between the modes (the failure in README "Multimodality").
+    that sits between the modes, and samples conditioned on the zero crossings of the bimodal sines
+    fall between them (EXPERIMENTS.md, section 5 "Bimodal sine").
 
     Returns
     -------
