@@ -4,25 +4,32 @@ and ``make run`` start.
 A launch (one of :data:`LAUNCHES`: ``demo``, ``primitive_server``, ``record``) has arguments, a
 frozen dataclass made with :func:`~deepprompt_ros.common.params.param` (name, default,
 description, range), and a function from their values to the nodes to start
-(:class:`NodeDescription`: executable, node name, parameter files, parameters, remappings,
-arguments). The launch files in ``launch/`` declare the arguments and turn each description into a
-``launch_ros.actions.Node`` (:meth:`NodeDescription.launch_kwargs`); ``make run``
+(:class:`NodeDescription`: package, executable, node name, namespace, parameter files, parameters,
+remappings, arguments). The launch files in ``launch/`` declare the arguments and turn each
+description into a ``launch_ros.actions.Node`` (:meth:`NodeDescription.launch_kwargs`); ``make run``
 (:mod:`deepprompt_ros.run_main`) turns the demo's into command lines
 (:meth:`NodeDescription.command`). Argument values arrive as strings (as a launch file gets them)
 and are checked here. No rclpy or launch import.
+
+The primitives the server serves follow the robot (:data:`ROBOT_PRIMITIVES`), and the demo and
+record launches add robot_state_publisher with the robot's URDF (TF for RViz) as an optional node:
+a launch under a ROS 2 installation starts it, ``make run`` only where its executable is installed.
 """
 from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import pathlib
+import re
 from typing import Any, Callable, Mapping, NamedTuple
 
 from deepprompt_ros.common.params import ConfigError, ParamSpec, from_mapping, param, specs_of
 from deepprompt_ros.paths import PACKAGE, find_data_file
 
 __all__ = ["NodeDescription", "Launch", "LAUNCHES", "DemoArguments", "PrimitiveServerArguments",
-           "RecordArguments", "EXECUTABLES", "arguments", "argument_text", "launch_argument_kwargs",
-           "parse_arguments", "nodes"]
+           "RecordArguments", "EXECUTABLES", "ROBOT_PRIMITIVES", "arguments", "argument_text",
+           "launch_argument_kwargs", "parse_arguments", "nodes", "find_executable", "primitives_file"]
 
 #: Executable (console script of setup.py) -> the module whose ``main()`` it runs.
 EXECUTABLES = {
@@ -31,7 +38,10 @@ EXECUTABLES = {
     "demo_recorder": "deepprompt_ros.ros.demo_recorder",
 }
 
-#: Environment of every node: one OpenBLAS thread (small matrices; no BLAS threads competing with
+#: Robot -> the package's primitives file (in ``config/``) that serves on it without a refusal.
+ROBOT_PRIMITIVES = {"gen3_lite": "primitives.yaml", "wam": "primitives_wam.yaml"}
+
+#: Environment of every node of the package: one OpenBLAS thread (small matrices; no BLAS threads competing with
 #: the 1 kHz loops).
 NODE_ENVIRONMENT = (("OPENBLAS_NUM_THREADS", "1"),)
 
@@ -45,6 +55,28 @@ def _ros_value(value) -> str:
     return json.dumps(value)  # JSON is YAML: quoted strings, lists, numbers
 
 
+def find_executable(package: str, executable: str) -> pathlib.Path | None:
+    """``<prefix>/lib/<package>/<executable>`` of the first prefix of ``AMENT_PREFIX_PATH`` that has it
+    (where ``ros2 run`` finds a package's executables), or None."""
+    for prefix in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep):
+        path = pathlib.Path(prefix) / "lib" / package / executable
+        if prefix and path.is_file() and os.access(path, os.X_OK):
+            return path
+    return None
+
+
+def _flatten(values: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested parameter mappings of a parameters file as dotted names (``camera: {topic: x}`` ->
+    ``camera.topic``)."""
+    out = {}
+    for k, v in values.items():
+        if isinstance(v, Mapping):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
 @dataclasses.dataclass(frozen=True)
 class NodeDescription:
     """One node to start.
@@ -52,7 +84,7 @@ class NodeDescription:
     Attributes
     ----------
     executable : str
-        Console script of the package (a key of :data:`EXECUTABLES`).
+        Executable of ``package``: for this package a console script (a key of :data:`EXECUTABLES`).
     name : str
         Node name (the executable's own node name unless remapped).
     parameter_files : tuple of str
@@ -65,6 +97,13 @@ class NodeDescription:
         Command-line arguments before ``--ros-args``.
     environment : tuple of (str, str)
         Environment variables set for the node.
+    package : str
+        ROS package of the executable.
+    namespace : str
+        Namespace of the node, relative (``arm1``, ``cell/arm1``); empty = none.
+    optional : str
+        Empty for a node that must run. Otherwise the node is optional and this says what is
+        missing without it: ``make run`` starts it only where its executable is installed.
     """
 
     executable: str
@@ -75,10 +114,12 @@ class NodeDescription:
     arguments: tuple[str, ...] = ()
     environment: tuple[tuple[str, str], ...] = NODE_ENVIRONMENT
     package: str = PACKAGE
+    namespace: str = ""
+    optional: str = ""
 
     @property
     def module(self) -> str:
-        """The Python module run by the executable."""
+        """The Python module run by the executable (this package's executables)."""
         return EXECUTABLES[self.executable]
 
     @property
@@ -87,12 +128,28 @@ class NodeDescription:
         a remap is passed only for another name (it applies to every node of the process)."""
         return self.name != self.executable
 
+    def parameter_values(self) -> dict[str, Any]:
+        """The parameters given after the files. Under a namespace, first the sections of the
+        parameter files keyed by the node's plain name: rcl matches a section against the fully
+        qualified name ``/<namespace>/<name>``, so there they would not apply (sections keyed
+        ``/**`` and the like still come from the files). Then :attr:`parameters`."""
+        values: dict[str, Any] = {}
+        if self.namespace:
+            import yaml
+
+            for f in self.parameter_files:
+                section = (yaml.safe_load(pathlib.Path(f).read_text()) or {}).get(self.name) or {}
+                values.update(_flatten(section.get("ros__parameters") or {}))
+        return {**values, **self.parameters}
+
     def launch_kwargs(self) -> dict[str, Any]:
         """Keyword arguments of ``launch_ros.actions.Node`` for this node."""
         kw = dict(package=self.package, executable=self.executable)
         if self.renamed:
             kw["name"] = self.name
-        values = {k: list(v) if isinstance(v, tuple) else v for k, v in self.parameters.items()}  # YAML lists
+        if self.namespace:
+            kw["namespace"] = self.namespace
+        values = {k: list(v) if isinstance(v, tuple) else v for k, v in self.parameter_values().items()}  # YAML lists
         return dict(kw, parameters=[*self.parameter_files] + ([values] if values else []),
                     remappings=list(self.remappings), arguments=list(self.arguments),
                     additional_env=dict(self.environment), output="screen")
@@ -102,22 +159,74 @@ class NodeDescription:
         out = ["--ros-args"]
         if self.renamed:
             out += ["-r", f"__node:={self.name}"]
+        if self.namespace:
+            out += ["-r", f"__ns:=/{self.namespace}"]
         for f in self.parameter_files:
             out += ["--params-file", f]
-        for k, v in self.parameters.items():
+        for k, v in self.parameter_values().items():
             out += ["-p", f"{k}:={_ros_value(v)}"]
         for a, b in self.remappings:
             out += ["-r", f"{a}:={b}"]
         return out
 
     def command(self, python: str) -> list[str]:
-        """Command line that starts the node with the interpreter ``python``."""
-        return [python, "-m", self.module, *self.arguments, *self.ros_arguments()]
+        """Command line that starts the node: this package's executables with the interpreter
+        ``python``, another package's by its installed executable (:func:`find_executable`).
+
+        Raises
+        ------
+        FileNotFoundError
+            Another package's executable is in no prefix of ``AMENT_PREFIX_PATH``.
+        """
+        if self.package == PACKAGE:
+            return [python, "-m", self.module, *self.arguments, *self.ros_arguments()]
+        path = find_executable(self.package, self.executable)
+        if path is None:
+            prefixes = os.environ.get("AMENT_PREFIX_PATH", "") or "not set"
+            raise FileNotFoundError(f"lib/{self.package}/{self.executable} is in no prefix of AMENT_PREFIX_PATH "
+                                    f"({prefixes}); source a ROS 2 installation that has {self.package}")
+        return [str(path), *self.arguments, *self.ros_arguments()]
 
 
 def _config(name: str) -> str:
     """Path of the package's ``config/<name>`` (installed share folder first, then the source tree)."""
     return str(find_data_file("config", name))
+
+
+def primitives_file(robot: str) -> str:
+    """Path of the package's primitives file for ``robot`` (:data:`ROBOT_PRIMITIVES`); ConfigError when
+    the package has none for it."""
+    if robot not in ROBOT_PRIMITIVES:
+        shipped = ", ".join(f"{r} ({f})" for r, f in ROBOT_PRIMITIVES.items())
+        raise ConfigError(f"robot = '{robot}': the package has primitives for {shipped} only; set primitives_file "
+                          f"to a primitives file whose models drive the joints of '{robot}'")
+    return _config(ROBOT_PRIMITIVES[robot])
+
+
+_NAMESPACE_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*$")
+
+
+def _namespace(text: str) -> str:
+    """The namespace argument as a relative namespace ('' = none; one leading '/' is accepted)."""
+    ns = text[1:] if text.startswith("/") else text
+    if ns and not _NAMESPACE_RE.match(ns):
+        raise ConfigError(f"namespace = '{text}': expected names of letters, digits and '_' (not starting with a "
+                          "digit) separated by '/', e.g. 'arm1' or 'cell/arm1'; empty = no namespace")
+    return ns
+
+
+def _robot_state_publisher(robot: str, namespace: str) -> NodeDescription:
+    """robot_state_publisher with the URDF of ``robot`` (the file sim_bridge loads and publishes):
+    /tf of the arm from joint_states, for RViz."""
+    from deepprompt_ros.robots.spec import urdf_path  # late: pinocchio loads only for the launches that use it
+
+    try:
+        urdf = urdf_path(robot).read_text()
+    except ValueError as exc:  # unknown robot: the message lists the known ones
+        raise ConfigError(f"robot = '{robot}': {exc}") from None
+    return NodeDescription("robot_state_publisher", "robot_state_publisher", (), {"robot_description": urdf},
+                           environment=(), package="robot_state_publisher", namespace=namespace,
+                           optional="RViz will have no TF (/tf) for the arm")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -127,13 +236,17 @@ def _config(name: str) -> str:
 class DemoArguments:
     """Arguments of ``demo.launch.py`` and ``make run``."""
 
-    robot: str = param("gen3_lite", "robot of the simulation and of the server: gen3_lite, wam or a fixed-base "
-                       "arm of example-robot-data")
+    robot: str = param("gen3_lite", "robot of the simulation and of the server: gen3_lite or wam (served with "
+                       "the package's primitives for it), or a fixed-base arm of example-robot-data (with "
+                       "primitives_file)")
     real_time_factor: float = param(1.0, "sim_bridge real_time_factor: simulated seconds per wall-clock second",
                                     min=0.0, max=100.0)
     stale_timeout: float = param(1.0, "primitive_server stale_timeout for the simulated robot (the server's "
                                  "default 0.2 s suits a real arm; the Python simulation can pause longer on a "
                                  "busy machine)", min=0.001, max=60.0, unit="s")
+    primitives_file: str = param("", "primitives to serve; empty = the package's for the robot "
+                                 "(config/primitives.yaml for gen3_lite, config/primitives_wam.yaml for wam)")
+    namespace: str = param("", "namespace of every node (its topics, services and name); empty = none")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -145,8 +258,10 @@ class PrimitiveServerArguments:
     robot: str = param("", "robot whose joints and limits the server uses; empty = the parameters file's")
     controller: str = param("", "JointTrajectory output goes to <controller>/joint_trajectory; empty = the "
                             "parameters file's (joint_trajectory_controller by default)")
-    primitives_file: str = param("", "primitives to serve; empty = the parameters file's (the package's "
-                                 "config/primitives.yaml by default)")
+    primitives_file: str = param("", "primitives to serve; empty = the package's for robot when robot is set and "
+                                 "params_file is not (config/primitives.yaml for gen3_lite, "
+                                 "config/primitives_wam.yaml for wam), else the parameters file's")
+    namespace: str = param("", "namespace of the node (its topics, services and name); empty = none")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -157,30 +272,38 @@ class RecordArguments:
                        "example-robot-data")
     output_directory: str = param("", "dataset folder of the demonstrations; empty = demo_recorder.yaml's "
                                   "(~/deepprompt_demos)")
+    namespace: str = param("", "namespace of every node (its topics, services and name); empty = none")
 
 
 def _demo(a: DemoArguments) -> list[NodeDescription]:
+    ns = _namespace(a.namespace)
     return [
         NodeDescription("sim_bridge", "sim_bridge", (_config("sim_bridge.yaml"),),
-                        {"robot": a.robot, "real_time_factor": a.real_time_factor}),
+                        {"robot": a.robot, "real_time_factor": a.real_time_factor}, namespace=ns),
         NodeDescription("primitive_server", "primitive_server", (_config("primitive_server.yaml"),),
-                        {"robot": a.robot, "stale_timeout": a.stale_timeout}),
+                        {"robot": a.robot, "stale_timeout": a.stale_timeout,
+                         "primitives_file": a.primitives_file or primitives_file(a.robot)}, namespace=ns),
+        _robot_state_publisher(a.robot, ns),
     ]
 
 
 def _primitive_server(a: PrimitiveServerArguments) -> list[NodeDescription]:
+    prims = a.primitives_file or (primitives_file(a.robot) if a.robot and not a.params_file else "")
     overrides = {k: v for k, v in (("robot", a.robot), ("controller", a.controller),
-                                   ("primitives_file", a.primitives_file)) if v}
+                                   ("primitives_file", prims)) if v}
     return [NodeDescription("primitive_server", "primitive_server",
-                            (a.params_file or _config("primitive_server.yaml"),), overrides)]
+                            (a.params_file or _config("primitive_server.yaml"),), overrides,
+                            namespace=_namespace(a.namespace))]
 
 
 def _record(a: RecordArguments) -> list[NodeDescription]:
+    ns = _namespace(a.namespace)
     recorder = {"output_directory": a.output_directory} if a.output_directory else {}
     return [
         NodeDescription("sim_bridge", "sim_bridge", (_config("sim_bridge.yaml"),),
-                        {"robot": a.robot, "kinesthetic": True}),
-        NodeDescription("demo_recorder", "demo_recorder", (_config("demo_recorder.yaml"),), recorder),
+                        {"robot": a.robot, "kinesthetic": True}, namespace=ns),
+        NodeDescription("demo_recorder", "demo_recorder", (_config("demo_recorder.yaml"),), recorder, namespace=ns),
+        _robot_state_publisher(a.robot, ns),
     ]
 
 
@@ -195,11 +318,12 @@ class Launch(NamedTuple):
 #: Launch name -> :class:`Launch`; ``launch/<name>.launch.py`` is the launch file.
 LAUNCHES: dict[str, Launch] = {
     "demo": Launch(DemoArguments, _demo, "the simulated arm (sim_bridge) and primitive_server with the "
-                   "shipped primitives, ready for service calls (what make run starts)"),
+                   "shipped primitives of the robot, ready for service calls, and robot_state_publisher (TF "
+                   "for RViz); what make run starts"),
     "primitive_server": Launch(PrimitiveServerArguments, _primitive_server, "primitive_server alone, for a "
                                "real arm: its driver publishes joint_states and runs the controller"),
-    "record": Launch(RecordArguments, _record, "kinesthetic recording: sim_bridge in kinesthetic mode and "
-                     "demo_recorder"),
+    "record": Launch(RecordArguments, _record, "kinesthetic recording: sim_bridge in kinesthetic mode, "
+                     "demo_recorder and robot_state_publisher (TF for RViz)"),
 }
 
 
@@ -263,6 +387,11 @@ def parse_arguments(launch: str, values: Mapping[str, str] | None = None):
 
 def nodes(launch: str, values: Mapping[str, str] | None = None) -> list[NodeDescription]:
     """The nodes ``launch`` starts with the argument values ``values`` (strings; missing ones:
-    defaults). Raises :class:`ConfigError` for invalid arguments and FileNotFoundError when a
-    parameter file of the package is missing."""
-    return _launch(launch).nodes(parse_arguments(launch, values))
+    defaults). Raises :class:`ConfigError` for invalid arguments (also a robot without a URDF, or
+    without primitives of the package when no primitives file is given) and FileNotFoundError when
+    a parameter file of the package is missing."""
+    args = parse_arguments(launch, values)
+    try:
+        return _launch(launch).nodes(args)
+    except ConfigError as exc:  # one line: the argument and what is expected
+        raise ConfigError(f"invalid arguments of launch '{launch}':\n  {exc}") from None

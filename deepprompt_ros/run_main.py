@@ -1,10 +1,12 @@
-"""`make run`: the simulated Gen3 lite (sim_bridge) and primitive_server with the shipped primitives,
-ready for service calls (see README). Ctrl-C stops both.
+"""`make run`: the simulated arm (sim_bridge; the Gen3 lite by default) and primitive_server with the
+robot's shipped primitives, ready for service calls (see README). Ctrl-C stops the nodes.
 
 The nodes and their parameters are those of ``ros2 launch deepprompt_ros demo.launch.py``: both
 come from :mod:`deepprompt_ros.bringup` (launch ``demo``), and the options below are its launch
 arguments. Each node runs as its own process (its own DDS participant), with LOCALHOST discovery
-unless ``ROS_AUTOMATIC_DISCOVERY_RANGE`` says otherwise.
+unless ``ROS_AUTOMATIC_DISCOVERY_RANGE`` says otherwise. An optional node of the description
+(robot_state_publisher, TF for RViz) whose executable is in no prefix of ``AMENT_PREFIX_PATH`` is
+skipped with one line saying so.
 """
 from __future__ import annotations
 
@@ -49,8 +51,15 @@ def main(argv=None) -> int:
     signal.signal(signal.SIGTERM, _terminate)
     try:
         for node in nodes:
+            try:
+                cmd = node.command(sys.executable)
+            except FileNotFoundError as exc:
+                if not node.optional:
+                    raise
+                print(f"[run] {node.name} skipped: {exc}; {node.optional}", flush=True)
+                continue
             node_env = {**env, **dict(node.environment)}
-            procs[node.name] = subprocess.Popen(node.command(sys.executable), env=node_env, start_new_session=True)
+            procs[node.name] = subprocess.Popen(cmd, env=node_env, start_new_session=True)
             print(f"[run] started {node.name} (pid {procs[node.name].pid})", flush=True)
         print("[run] ready for service calls, e.g. `.venv/bin/python examples/planner_client.py`; Ctrl-C to stop",
               flush=True)

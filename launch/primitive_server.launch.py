@@ -3,6 +3,7 @@ JointTrajectory controller the server streams to.
 
     ros2 launch deepprompt_ros primitive_server.launch.py [params_file:=/path/to/server.yaml]
         [robot:=gen3_lite] [controller:=joint_trajectory_controller] [primitives_file:=/path/to/primitives.yaml]
+        [namespace:=arm1]
 
 The nodes, their parameter files and parameters come from deepprompt_ros.bringup (launch
 'primitive_server'); deepprompt_ros.ros.launch_description turns it into launch actions.

@@ -1,10 +1,13 @@
 """The one description of what the launch files and ``make run`` start (deepprompt_ros.bringup):
-node names, executables, parameter files and parameters; each launch file in launch/ builds exactly
-the described nodes (run against small stand-ins of ``launch`` / ``launch_ros``, which cannot be
-installed here: this checks the files' wiring, not launch itself); run_main starts the same nodes
-with the same parameters; the default primitives file serves on the default robot."""
+node names, executables, namespaces, parameter files and parameters; each launch file in launch/
+builds exactly the described nodes (run against small stand-ins of ``launch`` / ``launch_ros``, which
+cannot be installed here: this checks the files' wiring, not launch itself); run_main starts the same
+nodes with the same parameters, robot_state_publisher only where it is installed; the primitives file
+chosen for each robot a launch advertises serves on it without a refusal."""
 import importlib.metadata
+import os
 import pathlib
+import re
 import runpy
 import sys
 import types
@@ -23,10 +26,11 @@ LAUNCH_DIR = ROOT / "launch"
 NODE_CONFIG = {"sim_bridge": SimBridgeConfig, "primitive_server": ServerConfig, "demo_recorder": RecorderConfig}
 #: Argument values other than the defaults, per launch (strings, as a launch file gets them).
 OTHER_VALUES = {
-    "demo": {"robot": "wam", "real_time_factor": "0.5", "stale_timeout": "2"},
+    "demo": {"robot": "wam", "real_time_factor": "0.5", "stale_timeout": "2", "namespace": "arm1"},
     "primitive_server": {"params_file": str(ROOT / "config" / "primitive_server.yaml"), "robot": "wam",
-                         "controller": "arm_controller", "primitives_file": "/tmp/primitives.yaml"},
-    "record": {"robot": "wam", "output_directory": "/tmp/demos"},
+                         "controller": "arm_controller", "primitives_file": "/tmp/primitives.yaml",
+                         "namespace": "/cell/arm1"},
+    "record": {"robot": "wam", "output_directory": "/tmp/demos", "namespace": "arm1"},
 }
 
 
@@ -53,7 +57,10 @@ def test_described_nodes_have_existing_files_and_declared_parameters(launch, oth
     nodes = bringup.nodes(launch, OTHER_VALUES[launch] if other else None)
     assert len({n.name for n in nodes}) == len(nodes)
     for node in nodes:
-        assert node.executable in bringup.EXECUTABLES and node.package == "deepprompt_ros"
+        if node.package != "deepprompt_ros":  # robot_state_publisher: tested below
+            assert node.optional and node.executable == "robot_state_publisher"
+            continue
+        assert node.executable in bringup.EXECUTABLES and not node.optional
         specs = {s.name: s for s in specs_of(NODE_CONFIG[node.executable])}
         for f in node.parameter_files:
             assert pathlib.Path(f).is_file(), f
@@ -64,37 +71,90 @@ def test_described_nodes_have_existing_files_and_declared_parameters(launch, oth
             assert not check(specs[name], value), check(specs[name], value)
 
 
-def test_demo_is_the_simulated_arm_and_the_server():
-    sim, server = bringup.nodes("demo")
-    assert (sim.executable, sim.name, server.executable, server.name) == (
-        "sim_bridge", "sim_bridge", "primitive_server", "primitive_server")
-    assert [pathlib.Path(f).name for f in sim.parameter_files + server.parameter_files] == [
+def _config_name(path) -> str:
+    return pathlib.Path(path).name
+
+
+def test_demo_is_the_simulated_arm_the_server_and_robot_state_publisher():
+    sim, server, rsp = bringup.nodes("demo")
+    assert (sim.executable, sim.name, server.executable, server.name, rsp.executable) == (
+        "sim_bridge", "sim_bridge", "primitive_server", "primitive_server", "robot_state_publisher")
+    assert [_config_name(f) for f in sim.parameter_files + server.parameter_files] == [
         "sim_bridge.yaml", "primitive_server.yaml"]
     assert sim.parameters == {"robot": "gen3_lite", "real_time_factor": 1.0}
-    assert server.parameters == {"robot": "gen3_lite", "stale_timeout": 1.0}
-    sim, server = bringup.nodes("demo", OTHER_VALUES["demo"])
+    assert {k: v for k, v in server.parameters.items() if k != "primitives_file"} == {
+        "robot": "gen3_lite", "stale_timeout": 1.0}
+    assert _config_name(server.parameters["primitives_file"]) == "primitives.yaml"
+    sim, server, rsp = bringup.nodes("demo", OTHER_VALUES["demo"])
     assert sim.parameters == {"robot": "wam", "real_time_factor": 0.5}
-    assert server.parameters == {"robot": "wam", "stale_timeout": 2.0}
+    assert {k: v for k, v in server.parameters.items() if k != "primitives_file"} == {
+        "robot": "wam", "stale_timeout": 2.0}
+    assert _config_name(server.parameters["primitives_file"]) == "primitives_wam.yaml"
     assert dict(sim.environment) == dict(server.environment) == {"OPENBLAS_NUM_THREADS": "1"}
+    _, server, _ = bringup.nodes("demo", {"robot": "wam", "primitives_file": "/tmp/mine.yaml"})
+    assert server.parameters["primitives_file"] == "/tmp/mine.yaml"  # given: it wins
 
 
 def test_primitive_server_launch_overrides_only_what_is_given():
     server, = bringup.nodes("primitive_server")
-    assert [pathlib.Path(f).name for f in server.parameter_files] == ["primitive_server.yaml"]
+    assert [_config_name(f) for f in server.parameter_files] == ["primitive_server.yaml"]
     assert server.parameters == {}
     server, = bringup.nodes("primitive_server", OTHER_VALUES["primitive_server"])
     assert server.parameter_files == (OTHER_VALUES["primitive_server"]["params_file"],)
     assert server.parameters == {"robot": "wam", "controller": "arm_controller",
                                  "primitives_file": "/tmp/primitives.yaml"}
+    # a robot with the package's parameters file: the package's primitives of that robot
+    server, = bringup.nodes("primitive_server", {"robot": "wam"})
+    assert _config_name(server.parameters["primitives_file"]) == "primitives_wam.yaml"
+    # the user's parameters file names its own primitives
+    server, = bringup.nodes("primitive_server", {"robot": "wam", "params_file": "/tmp/server.yaml"})
+    assert server.parameters == {"robot": "wam"}
 
 
-def test_record_launch_starts_the_sim_in_kinesthetic_mode_and_the_recorder():
-    sim, recorder = bringup.nodes("record")
+def test_record_launch_starts_the_sim_in_kinesthetic_mode_the_recorder_and_robot_state_publisher():
+    sim, recorder, rsp = bringup.nodes("record")
     assert sim.parameters == {"robot": "gen3_lite", "kinesthetic": True}
     assert (recorder.executable, recorder.parameters) == ("demo_recorder", {})
-    assert [pathlib.Path(f).name for f in recorder.parameter_files] == ["demo_recorder.yaml"]
-    _, recorder = bringup.nodes("record", OTHER_VALUES["record"])
+    assert [_config_name(f) for f in recorder.parameter_files] == ["demo_recorder.yaml"]
+    assert rsp.executable == "robot_state_publisher"
+    _, recorder, _ = bringup.nodes("record", OTHER_VALUES["record"])
     assert recorder.parameters == {"output_directory": "/tmp/demos"}
+
+
+@pytest.mark.parametrize("launch", ["demo", "record"])
+@pytest.mark.parametrize("robot", ["gen3_lite", "wam"])
+def test_robot_state_publisher_gets_the_urdf_of_the_robot(launch, robot):
+    rsp = bringup.nodes(launch, {"robot": robot})[-1]
+    assert (rsp.package, rsp.executable, rsp.name) == ("robot_state_publisher",) * 3
+    urdf = (ROOT / "deepprompt_ros" / "resources" / "urdf" / f"{robot}.urdf").read_text()
+    assert rsp.parameters == {"robot_description": urdf}  # the file sim_bridge publishes as robot_description
+    assert rsp.parameter_files == () and rsp.environment == () and "no TF" in rsp.optional
+    assert rsp.launch_kwargs()["parameters"] == [{"robot_description": urdf}]
+    # on the command line: the URDF as one YAML string that reads back as the very text
+    cmd = rsp.ros_arguments()
+    assert cmd[:2] == ["--ros-args", "-p"] and yaml.safe_load(cmd[2].split(":=", 1)[1]) == urdf
+
+
+def test_namespace_reaches_every_node():
+    for launch in bringup.LAUNCHES:
+        for ns in ("arm1", "/arm1"):
+            for node in bringup.nodes(launch, {"namespace": ns}):
+                assert node.namespace == "arm1"
+                assert node.launch_kwargs()["namespace"] == "arm1"
+                assert node.ros_arguments()[1:3] == ["-r", "__ns:=/arm1"]
+        for node in bringup.nodes(launch):
+            assert node.namespace == "" and "namespace" not in node.launch_kwargs()
+            assert not any(a.startswith("__ns:=") for a in node.ros_arguments())
+    # a file's section keyed by the plain node name does not apply under a namespace (rcl matches
+    # /arm1/primitive_server): its values are passed as parameters, the description's winning
+    _, server, _ = bringup.nodes("demo", {"namespace": "arm1"})
+    values = server.parameter_values()
+    assert values["loop_mode"] == "thread" and values["stale_timeout"] == 1.0
+    sim, _, _ = bringup.nodes("demo", {"namespace": "arm1"})
+    assert sim.parameter_values()["camera.topic"] == "camera/image_raw"
+    assert sim.parameter_values()["objects.cube.shape"] == "box"
+    with pytest.raises(ConfigError, match="namespace = 'arm 1': expected names of letters"):
+        bringup.nodes("demo", {"namespace": "arm 1"})
 
 
 def test_invalid_arguments_are_refused_with_what_is_expected():
@@ -125,7 +185,7 @@ def test_command_line_carries_the_same_node():
     assert kw["name"] == "arm_sim" and kw["parameters"][:2] == ["/a.yaml", "/b.yaml"]
     assert kw["parameters"][2]["object_names"] == ["a", "b"] and kw["remappings"] == [("joint_states", "/arm/joint_states")]
     for node in bringup.nodes("demo"):  # the executables' own node names: no remap
-        assert "__node:=" not in " ".join(node.command("/py")) and "name" not in node.launch_kwargs()
+        assert "__node:=" not in " ".join(node.ros_arguments()) and "name" not in node.launch_kwargs()
 
 
 # ------------------------------------------------------------------------------------------------
@@ -139,6 +199,23 @@ class _Action:
 class _LaunchDescription:
     def __init__(self, entities=()):
         self.entities = list(entities)
+
+
+class _ParameterValue:
+    def __init__(self, value, *, value_type=None):
+        self.value, self.value_type = value, value_type
+
+
+def _unwrap(kwargs: dict) -> dict:
+    """A Node's keyword arguments with every ParameterValue(value, value_type=str) as its value."""
+    params = []
+    for p in kwargs["parameters"]:
+        if isinstance(p, dict):
+            assert all(v.value_type is str for v in p.values() if isinstance(v, _ParameterValue))
+            assert not any(isinstance(v, str) for v in p.values())  # strings stay strings: no YAML reading
+            p = {k: v.value if isinstance(v, _ParameterValue) else v for k, v in p.items()}
+        params.append(p)
+    return dict(kwargs, parameters=params)
 
 
 class _LaunchConfiguration:
@@ -163,9 +240,12 @@ def stand_in_launch(monkeypatch):
     launch_ros = types.ModuleType("launch_ros")
     ros_actions = types.ModuleType("launch_ros.actions")
     ros_actions.Node = type("Node", (_Action,), {})
-    launch_ros.actions = ros_actions
+    descriptions = types.ModuleType("launch_ros.parameter_descriptions")
+    descriptions.ParameterValue = _ParameterValue
+    launch_ros.actions, launch_ros.parameter_descriptions = ros_actions, descriptions
     for name, module in {"launch": launch, "launch.actions": actions, "launch.substitutions": substitutions,
-                         "launch_ros": launch_ros, "launch_ros.actions": ros_actions}.items():
+                         "launch_ros": launch_ros, "launch_ros.actions": ros_actions,
+                         "launch_ros.parameter_descriptions": descriptions}.items():
         monkeypatch.setitem(sys.modules, name, module)
     return types.SimpleNamespace(DeclareLaunchArgument=actions.DeclareLaunchArgument,
                                  OpaqueFunction=actions.OpaqueFunction, Node=ros_actions.Node)
@@ -186,7 +266,7 @@ def test_launch_file_builds_the_described_nodes(stand_in_launch, launch, other):
     context = types.SimpleNamespace(launch_configurations=values)
     nodes = opaque.kwargs["function"](context)
     assert all(isinstance(n, stand_in_launch.Node) and not n.args for n in nodes)
-    assert [n.kwargs for n in nodes] == [d.launch_kwargs() for d in bringup.nodes(launch, values)]
+    assert [_unwrap(n.kwargs) for n in nodes] == [d.launch_kwargs() for d in bringup.nodes(launch, values)]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -200,8 +280,9 @@ def test_run_main_options_are_the_demo_arguments():
                                                            for d in bringup.launch_argument_kwargs("demo")}
 
 
-@pytest.mark.parametrize("argv", [[], ["--robot", "wam", "--real-time-factor", "0.5", "--stale-timeout", "2"]])
-def test_run_main_starts_the_described_nodes(monkeypatch, argv):
+@pytest.fixture
+def fake_popen(monkeypatch):
+    """subprocess.Popen of run_main replaced: the (command, environment) of every started node."""
     started = []
 
     class FakeProcess:
@@ -218,12 +299,36 @@ def test_run_main_starts_the_described_nodes(monkeypatch, argv):
 
     monkeypatch.setattr(run_main.subprocess, "Popen", FakeProcess)
     monkeypatch.setattr(run_main.signal, "signal", lambda *args: None)
+    return started
+
+
+@pytest.mark.parametrize("argv", [[], ["--robot", "wam", "--real-time-factor", "0.5", "--stale-timeout", "2",
+                                       "--namespace", "arm1"]])
+def test_run_main_starts_the_described_nodes_and_skips_a_missing_robot_state_publisher(
+        fake_popen, monkeypatch, tmp_path, capsys, argv):
+    monkeypatch.setenv("AMENT_PREFIX_PATH", str(tmp_path))  # a prefix without robot_state_publisher
     assert run_main.main(argv) == 1  # every fake node "exited" at once
     values = dict(zip(argv[::2], argv[1::2]))
     values = {k[2:].replace("-", "_"): v for k, v in values.items()}
-    expected = [n.command(sys.executable) for n in bringup.nodes("demo", values)]
-    assert [cmd for cmd, _ in started] == expected
-    assert all(env["OPENBLAS_NUM_THREADS"] == "1" for _, env in started)
+    *ours, rsp = bringup.nodes("demo", values)
+    assert [cmd for cmd, _ in fake_popen] == [n.command(sys.executable) for n in ours]
+    assert all(env["OPENBLAS_NUM_THREADS"] == "1" for _, env in fake_popen)
+    skipped = [line for line in capsys.readouterr().out.splitlines() if "robot_state_publisher" in line]
+    assert skipped == [f"[run] robot_state_publisher skipped: lib/robot_state_publisher/robot_state_publisher is in "
+                       f"no prefix of AMENT_PREFIX_PATH ({tmp_path}); source a ROS 2 installation that has "
+                       f"robot_state_publisher; RViz will have no TF (/tf) for the arm"]
+
+
+def test_run_main_starts_robot_state_publisher_found_through_ament_prefix_path(fake_popen, monkeypatch, tmp_path):
+    exe = tmp_path / "ros" / "lib" / "robot_state_publisher" / "robot_state_publisher"
+    exe.parent.mkdir(parents=True)
+    exe.write_text("#!/bin/sh\n")
+    exe.chmod(0o755)
+    monkeypatch.setenv("AMENT_PREFIX_PATH", os.pathsep.join([str(tmp_path / "empty"), str(tmp_path / "ros")]))
+    assert run_main.main(["--robot", "wam"]) == 1
+    (cmd, env), = [(cmd, env) for cmd, env in fake_popen if cmd[0] == str(exe)]
+    assert cmd == [str(exe), *bringup.nodes("demo", {"robot": "wam"})[-1].ros_arguments()]
+    assert "robot_state_publisher" not in {c[2] for c, _ in fake_popen if c[0] == sys.executable}
 
 
 def test_run_main_refuses_invalid_options(capsys):
@@ -236,6 +341,41 @@ def test_run_main_refuses_invalid_options(capsys):
 # ------------------------------------------------------------------------------------------------
 # the default primitives file
 # ------------------------------------------------------------------------------------------------
+def _advertised_robots() -> set[str]:
+    """Robots the launch files' usage lines and the launches' argument defaults name."""
+    text = " ".join(p.read_text() for p in LAUNCH_DIR.glob("*.launch.py"))
+    defaults = {s.default for launch in bringup.LAUNCHES for s in bringup.arguments(launch) if s.name == "robot"}
+    return set(re.findall(r"robot:=(\w+)", text)) | (defaults - {""})
+
+
+def test_every_advertised_robot_has_primitives():
+    assert _advertised_robots() == {"gen3_lite", "wam"}
+    assert _advertised_robots() <= set(bringup.ROBOT_PRIMITIVES)
+
+
+@pytest.mark.parametrize("robot", sorted(bringup.ROBOT_PRIMITIVES))
+def test_chosen_primitives_file_serves_on_its_robot_without_refusal(robot):
+    from deepprompt_ros import paths
+    from deepprompt_ros.robots.spec import load_robot
+    from deepprompt_ros.server.primitives_file import load_primitives, read_primitives_file
+
+    for launch in ("demo", "primitive_server"):
+        server, = [n for n in bringup.nodes(launch, {"robot": robot}) if n.executable == "primitive_server"]
+        entries, errors = read_primitives_file(server.parameters["primitives_file"])
+        assert entries and not errors
+        prims, refused = load_primitives(entries, load_robot(robot).joint_names,
+                                         lambda name: paths.find_data_file("models", name))
+        assert refused == [] and sorted(prims) == sorted(e.name for e in entries)
+
+
+def test_robot_without_primitives_of_the_package_needs_a_primitives_file():
+    with pytest.raises(ConfigError, match="robot = 'ur5': the package has primitives for gen3_lite "
+                                          r"\(primitives.yaml\), wam \(primitives_wam.yaml\) only; set primitives_file"):
+        bringup.nodes("demo", {"robot": "ur5"})
+    _, server, _ = bringup.nodes("demo", {"robot": "ur5", "primitives_file": "/tmp/ur5.yaml"})
+    assert server.parameters["primitives_file"] == "/tmp/ur5.yaml"
+
+
 def test_default_primitives_file_serves_on_the_default_robot_without_refusal():
     from deepprompt_ros import paths
     from deepprompt_ros.robots.spec import load_robot

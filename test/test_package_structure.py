@@ -120,7 +120,7 @@ LAYERS: dict[str, tuple[str, ...]] = {
     "recording": ("data",),
     # the top-level modules and the ROS nodes on top of everything they run
     "paths": (),
-    "bringup": ("common", "paths"),
+    "bringup": ("common", "paths", "robots"),  # robots: the URDF robot_state_publisher gets
     "run_main": ("bringup",),
     "ros": ("server", "recording", "sim", "bringup"),
 }
