@@ -54,9 +54,10 @@ from deepprompt_ros.baselines.interface import (BASELINE_FORMAT, Inputs, InputSp
                                                 context_mean, provenance, read_baseline_metadata,
                                                 split_for_validation)
 from deepprompt_ros.model.aggregation import gaussian_kl
-from deepprompt_ros.model.checkpoint import Normalization, normalization_tensors, read_normalization
+from deepprompt_ros.model.checkpoint import (Normalization, check_tensors, module_shapes, normalization_shapes,
+                                             normalization_tensors, read_normalization)
 from deepprompt_ros.model.phase import phase_features
-from deepprompt_ros.model.safetensors_file import read_safetensors, write_safetensors
+from deepprompt_ros.model.safetensors_file import metadata_json, read_safetensors, write_safetensors
 from deepprompt_ros.primitive.latent import LatentGaussian
 from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.objectives import sample_subset_weights, validation_weights
@@ -276,16 +277,22 @@ class _ConcatBaseline(MovementPrimitiveModel):
     def load(cls, path):
         meta, tensors = read_safetensors(path)
         spec, extra = read_baseline_metadata(path, meta, cls.kind)
+        net_config = metadata_json(meta, "net_config", path)
         try:
-            ncfg = ConcatNetConfig.from_json(json.loads(meta["net_config"]))
-        except (KeyError, ValueError, TypeError) as exc:
+            ncfg = ConcatNetConfig.from_json(net_config)
+        except (ValueError, TypeError) as exc:
             raise ValueError(f"model file '{path}' has an invalid network config: {exc}") from exc
-        if ncfg.variant != cls.variant or ncfg.n_joints != spec.n_joints:
-            raise ValueError(f"model file '{path}': network config ({ncfg.variant}, {ncfg.n_joints} joints) does not "
-                             f"match a '{cls.kind}' model of {spec.n_joints} joints")
-        for k, v in tensors.items():
-            if v.is_floating_point() and not torch.isfinite(v).all():
-                raise ValueError(f"model file '{path}': tensor '{k}' contains NaN or inf")
+        if ncfg.variant != cls.variant or ncfg.n_joints != spec.n_joints or ncfg.context_dims != spec.context_dims:
+            raise ValueError(f"model file '{path}': network config ({ncfg.variant}, {ncfg.n_joints} joints, contexts "
+                             f"{list(ncfg.context_dims)}) does not match a '{cls.kind}' model of {spec.n_joints} "
+                             f"joints and contexts {list(spec.context_dims)}")
+        history = extra.pop("history", [])
+        if not isinstance(history, list):
+            raise ValueError(f"model file '{path}': metadata 'history' must be a list; got {type(history).__name__}")
+        # shapes first, on the meta device: a config that describes a huge network allocates nothing
+        check_tensors(tensors, module_shapes(lambda: ConcatEncoderNet(ncfg), "net.")
+                      | normalization_shapes(spec.n_joints, spec.context_dims), path,
+                      f"its network config ({ncfg.variant}, latent_dim {ncfg.latent_dim}, hidden {ncfg.hidden})")
         out = cls(std_floor=ncfg.std_floor)
         out.net = ConcatEncoderNet(ncfg)
         try:
@@ -294,7 +301,7 @@ class _ConcatBaseline(MovementPrimitiveModel):
             raise ValueError(f"model file '{path}': weights do not match the stored architecture: {exc}") from exc
         out.net.eval()
         out.spec, out.norm = spec, read_normalization(tensors, spec.n_joints, spec.context_dims, path)
-        out.history = list(extra.pop("history", []))
+        out.history = history
         out.metadata = extra
         return out
 

@@ -22,6 +22,7 @@ from deepprompt_ros import __version__
 from deepprompt_ros.common.joints import joint_list_text
 from deepprompt_ros.data.demo_dataset import DemoDataset
 from deepprompt_ros.model.checkpoint import Normalization
+from deepprompt_ros.model.safetensors_file import metadata_json
 from deepprompt_ros.primitive.inputs import check_images, check_phases
 from deepprompt_ros.training.config import TrainConfig
 
@@ -126,9 +127,25 @@ class InputSpec:
 
     @classmethod
     def from_json(cls, d: Mapping) -> "InputSpec":
-        return cls(str(d["name"]), tuple(str(j) for j in d["joint_names"]), str(d["phase_type"]),
-                   tuple((str(n), int(c)) for n, c in d["context_dims"]),
-                   tuple(int(v) for v in d["image_shape"]) if d.get("image_shape") else None)
+        """Inverse of :meth:`to_json`; ``ValueError`` saying which entry is missing or malformed."""
+        missing = [k for k in ("name", "joint_names", "phase_type", "context_dims") if k not in d]
+        if missing:
+            raise ValueError(f"spec lacks {missing}")
+        names = d["joint_names"]
+        if not isinstance(names, list) or not names or not all(isinstance(n, str) and n for n in names) \
+                or len(set(names)) != len(names):
+            raise ValueError(f"spec joint_names must be a list of distinct non-empty strings; got {str(names)[:80]}")
+        dims = d["context_dims"]
+        if not isinstance(dims, list) or not all(
+                isinstance(c, list) and len(c) == 2 and isinstance(c[0], str) and type(c[1]) is int and c[1] >= 1
+                for c in dims):
+            raise ValueError(f"spec context_dims must be a list of [name, dimension >= 1]; got {str(dims)[:80]}")
+        shape = d.get("image_shape")
+        if shape is not None and not (isinstance(shape, list) and len(shape) == 2
+                                      and all(type(v) is int and v >= 1 for v in shape)):
+            raise ValueError(f"spec image_shape must be null or [height, width]; got {str(shape)[:80]}")
+        return cls(str(d["name"]), tuple(names), str(d["phase_type"]), tuple((n, c) for n, c in dims),
+                   tuple(shape) if shape else None)
 
 
 class MovementPrimitiveModel(abc.ABC):
@@ -234,9 +251,9 @@ def read_baseline_metadata(path, meta: Mapping, kind: str) -> tuple[InputSpec, d
     if meta.get("kind") != kind:
         raise ValueError(f"model file '{path}' holds a '{meta.get('kind')}' model, not '{kind}'; use "
                          "load_model(path) to open any model file")
+    spec = metadata_json(meta, "spec", path)
     try:
-        spec = InputSpec.from_json(json.loads(meta["spec"]))
-        extra = json.loads(meta.get("metadata", "{}"))
-    except (KeyError, ValueError, TypeError) as exc:
+        spec = InputSpec.from_json(spec)
+    except ValueError as exc:
         raise ValueError(f"model file '{path}' has invalid metadata: {exc}") from exc
-    return spec, extra
+    return spec, metadata_json(meta, "metadata", path, default={})

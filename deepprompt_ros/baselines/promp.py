@@ -644,29 +644,60 @@ class ProMP:
 
     @classmethod
     def load(cls, path) -> "ProMP":
-        """Read a primitive written by :meth:`save` (no pickle)."""
-        with np.load(Path(path), allow_pickle=False) as z:
+        """Read a primitive written by :meth:`save` (no pickle); ``ValueError`` naming ``path`` when
+        it is not one."""
+        try:
+            z = np.load(Path(path), allow_pickle=False)
+        except EOFError as exc:  # an empty file
+            raise ValueError(f"{path} is not a ProMP file: {exc}") from exc
+        if not isinstance(z, np.lib.npyio.NpzFile):
+            raise ValueError(f"{path} is not a ProMP file: a single array, not an .npz archive")
+        with z:
             for key in ("mean", "cov", "obs_var", "meta"):
                 if key not in z.files:
                     raise ValueError(f"{path} is not a ProMP file: missing '{key}'")
-            meta = json.loads(str(z["meta"]))
-            mean, cov, obs_var = z["mean"], z["cov"], z["obs_var"]
+            meta, mean, cov, obs_var = str(z["meta"]), z["mean"], z["cov"], z["obs_var"]
+        return cls.from_arrays(mean, cov, obs_var, meta, str(path))
+
+    @classmethod
+    def from_arrays(cls, mean, cov, obs_var, meta: str, source: str) -> "ProMP":
+        """The primitive whose arrays and JSON metadata string :meth:`save` writes: mean ((n_w + c,)),
+        cov ((n_w + c, n_w + c)), obs_var ((d,)); ``ValueError`` naming ``source`` (where they were
+        read) when the metadata is not valid, the format or version differs, the shapes do not match
+        the metadata or an array holds NaN or inf."""
+        try:
+            meta = json.loads(meta)
+        except ValueError as exc:
+            raise ValueError(f"{source}: ProMP metadata is not valid JSON ({exc})") from exc
+        if not isinstance(meta, dict):
+            raise ValueError(f"{source}: ProMP metadata must be a JSON object; got {type(meta).__name__}")
         if meta.get("format") != _FORMAT or meta.get("format_version") != _FORMAT_VERSION:
-            raise ValueError(f"{path}: format {meta.get('format')!r} version "
+            raise ValueError(f"{source}: format {meta.get('format')!r} version "
                              f"{meta.get('format_version')!r}; expected {_FORMAT!r} version "
                              f"{_FORMAT_VERSION}")
-        out = cls(meta["n_joints"], meta["n_basis"], rhythmic=meta["rhythmic"],
-                  width=meta["width"], ridge=meta["ridge"], cov_reg=meta["cov_reg"],
-                  joint_names=meta["joint_names"])
-        Dz = out.n_weights + meta["context_dim"]
+        try:
+            out = cls(meta["n_joints"], meta["n_basis"], rhythmic=meta["rhythmic"],
+                      width=meta["width"], ridge=meta["ridge"], cov_reg=meta["cov_reg"],
+                      joint_names=meta["joint_names"])
+            context_dim, n_demos, cov_reg_used = int(meta["context_dim"]), meta["n_demos"], meta["cov_reg_used"]
+        except KeyError as exc:
+            raise ValueError(f"{source}: ProMP metadata lacks {exc}") from exc
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{source}: invalid ProMP metadata: {exc}") from exc
+        mean, cov, obs_var = (np.asarray(a) for a in (mean, cov, obs_var))
+        Dz = out.n_weights + context_dim
         if mean.shape != (Dz,) or cov.shape != (Dz, Dz) or obs_var.shape != (out.n_joints,):
-            raise ValueError(f"{path}: array shapes {mean.shape}, {cov.shape}, {obs_var.shape} "
+            raise ValueError(f"{source}: array shapes {mean.shape}, {cov.shape}, {obs_var.shape} "
                              f"do not match the metadata (expected ({Dz},), ({Dz}, {Dz}), "
                              f"({out.n_joints},))")
+        for name, a in (("mean", mean), ("cov", cov), ("obs_var", obs_var)):
+            if a.dtype.kind != "f" or not np.all(np.isfinite(a)):
+                raise ValueError(f"{source}: ProMP array '{name}' must hold finite floats; got dtype {a.dtype}"
+                                 f"{'' if a.dtype.kind != 'f' else ' with NaN or inf'}")
         out._mean, out._cov_mat, out._cov_q, out._obs_var = mean, cov, None, obs_var
-        out.context_dim = meta["context_dim"]
-        out.n_demos = meta["n_demos"]
-        out.cov_reg_used = meta["cov_reg_used"]
+        out.context_dim = context_dim
+        out.n_demos = n_demos
+        out.cov_reg_used = cov_reg_used
         return out
 
     # ---------------------------------------------------------------------------------

@@ -16,8 +16,9 @@ from deepprompt_ros.baselines.interface import (BASELINE_FORMAT, InputSpec, Move
                                                 read_baseline_metadata, split_for_validation)
 from deepprompt_ros.baselines.promp import ProMP
 from deepprompt_ros.evaluation.reconstruction import reconstruction_mse
-from deepprompt_ros.model.checkpoint import Normalization, normalization_tensors, read_normalization
-from deepprompt_ros.model.safetensors_file import read_safetensors, write_safetensors
+from deepprompt_ros.model.checkpoint import (Normalization, check_tensors, normalization_shapes, normalization_tensors,
+                                             read_normalization)
+from deepprompt_ros.model.safetensors_file import metadata_json, read_safetensors, write_safetensors
 from deepprompt_ros.training.tensors import fit_normalization
 
 __all__ = ["ProMPModel"]
@@ -128,17 +129,25 @@ class ProMPModel(MovementPrimitiveModel):
     def load(cls, path):
         meta, tensors = read_safetensors(path)
         spec, extra = read_baseline_metadata(path, meta, cls.kind)
+        options = metadata_json(meta, "options", path)
         try:
-            out = cls(**json.loads(meta["options"]))
-            arrays = {k: tensors[f"promp.{k}"].numpy() for k in ("mean", "cov", "obs_var")}
-            promp_meta = meta["promp"]
-        except (KeyError, ValueError, TypeError) as exc:
-            raise ValueError(f"model file '{path}' has invalid ProMP data: {exc}") from exc
-        with tempfile.TemporaryDirectory() as tmp:
-            f = pathlib.Path(tmp) / "promp.npz"
-            with open(f, "wb") as fh:
-                np.savez(fh, meta=np.array(promp_meta), **arrays)
-            out.promp = ProMP.load(f)
+            out = cls(**options)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"model file '{path}' has invalid ProMP options {options}: {exc}") from exc
+        if "promp" not in meta:
+            raise ValueError(f"model file '{path}' lacks the metadata entry 'promp'; expected a file written by "
+                             "deepprompt_ros")
+        arrays = ("mean", "cov", "obs_var")  # shapes: checked against the ProMP metadata below
+        check_tensors(tensors, {f"promp.{k}": None for k in arrays}
+                      | normalization_shapes(spec.n_joints, spec.context_dims), path, "a ProMP model of its spec")
+        out.promp = ProMP.from_arrays(*(tensors[f"promp.{k}"].numpy() for k in arrays), meta["promp"],
+                                      f"model file '{path}'")
+        if out.promp.n_joints != spec.n_joints:
+            raise ValueError(f"model file '{path}': its ProMP has {out.promp.n_joints} joints, its spec "
+                             f"{spec.n_joints}")
         out.spec, out.norm = spec, read_normalization(tensors, spec.n_joints, spec.context_dims, path)
-        out.history = list(extra.get("history", []))
+        history = extra.get("history", [])
+        if not isinstance(history, list):
+            raise ValueError(f"model file '{path}': metadata 'history' must be a list; got {type(history).__name__}")
+        out.history = list(history)
         return out

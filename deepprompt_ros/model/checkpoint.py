@@ -7,20 +7,22 @@ never executes code from the file: safetensors stores raw tensors and a JSON hea
 safetensors file is refused with a message.
 
 The normalization is stored the same way in the baselines' files
-(:func:`normalization_tensors`, :func:`read_normalization`).
+(:func:`normalization_tensors`, :func:`read_normalization`), and their loaders check their tensors
+against the architecture their file describes the same way (:func:`module_shapes`,
+:func:`normalization_shapes`, :func:`check_tensors`).
 """
 from __future__ import annotations
 
 import dataclasses
 import json
 import pathlib
-from typing import Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 import torch
 
 from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
-from deepprompt_ros.model.safetensors_file import read_safetensors, write_safetensors
+from deepprompt_ros.model.safetensors_file import metadata_json, read_safetensors, write_safetensors
 
 FORMAT = "deepprompt_ros.deepprompt/1"
 _WORDING = {"expected": "a .safetensors DeepProMP checkpoint", "written": "a checkpoint written by deepprompt_ros",
@@ -56,6 +58,64 @@ def normalization_tensors(norm: Normalization) -> dict[str, torch.Tensor]:
         tensors[f"norm.ctx_mean.{name}"] = torch.as_tensor(np.asarray(norm.ctx_mean[name], dtype=np.float64))
         tensors[f"norm.ctx_std.{name}"] = torch.as_tensor(np.asarray(norm.ctx_std[name], dtype=np.float64))
     return tensors
+
+
+def normalization_shapes(n_joints: int, context_dims: Sequence[tuple[str, int]]) -> dict[str, tuple[int, ...]]:
+    """Name -> shape of the tensors :func:`normalization_tensors` writes for a model of ``n_joints``
+    joints and the contexts ``context_dims`` ((name, c) pairs)."""
+    shapes = {"norm.y_mean": (n_joints,), "norm.y_std": (n_joints,)}
+    for name, c in context_dims:
+        shapes[f"norm.ctx_mean.{name}"] = shapes[f"norm.ctx_std.{name}"] = (c,)
+    return shapes
+
+
+def module_shapes(make: Callable[[], torch.nn.Module], prefix: str = "") -> dict[str, tuple[int, ...]]:
+    """Name (``prefix`` + state-dict key) -> shape of the weights of the module ``make()`` builds,
+    built on the ``meta`` device: no memory is allocated, so the architecture a file describes can
+    be compared with its tensors before a network of that size is built."""
+    with torch.device("meta"):
+        module = make()
+    return {prefix + k: tuple(v.shape) for k, v in module.state_dict().items()}
+
+
+def check_tensors(tensors: Mapping[str, torch.Tensor], shapes: Mapping[str, tuple[int, ...] | None], path,
+                  what: str, error: type[ValueError] = ValueError) -> None:
+    """Refuse the tensors of the model file ``path`` unless they are exactly those of ``shapes``
+    (name -> shape; None: any shape): none missing, none extra, every shape as given, every tensor
+    floating point and finite. ``what`` names where the shapes come from (e.g. "its model
+    config"); the message names the first tensor that is wrong."""
+    def names(keys):
+        keys = sorted(keys)
+        return ", ".join(f"'{k}'" for k in keys[:4]) + (f" and {len(keys) - 4} more" if len(keys) > 4 else "")
+
+    missing, extra = set(shapes) - set(tensors), set(tensors) - set(shapes)
+    if missing:
+        raise error(f"model file '{path}' lacks tensor(s) {names(missing)} that {what} needs")
+    if extra:
+        raise error(f"model file '{path}' has tensor(s) {names(extra)} that {what} does not have")
+    for k, shape in shapes.items():
+        v = tensors[k]
+        if shape is not None and tuple(v.shape) != tuple(shape):
+            raise error(f"model file '{path}': tensor '{k}' has shape {tuple(v.shape)} but {what} needs "
+                        f"{tuple(shape)}")
+        if not v.is_floating_point():
+            raise error(f"model file '{path}': tensor '{k}' has dtype {str(v.dtype).replace('torch.', '')}; "
+                        f"expected floating point")
+        if not torch.isfinite(v).all():
+            raise error(f"model file '{path}': tensor '{k}' contains NaN or inf")
+
+
+def joint_names_json(meta: Mapping[str, str], key: str, path, error: type[ValueError] = ValueError) -> tuple[str, ...]:
+    """The joint names stored as a JSON array under the metadata entry ``key``: distinct non-empty
+    strings, else ``error`` naming the file."""
+    names = metadata_json(meta, key, path, kind=list, error=error)
+    if not all(isinstance(n, str) and n for n in names):
+        raise error(f"model file '{path}': metadata entry '{key}' must list joint names as non-empty strings; "
+                    f"got {names[:8]}")
+    if len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise error(f"model file '{path}': metadata entry '{key}' names joint(s) {dup} more than once")
+    return tuple(names)
 
 
 def read_normalization(tensors: Mapping[str, torch.Tensor], n_joints: int,
@@ -112,25 +172,39 @@ def save_checkpoint(path, net: DeepProMPNet, normalization: Normalization, joint
 
 
 def load_checkpoint(path) -> Checkpoint:
-    """Load and validate a checkpoint; raise :class:`CheckpointError` with what is wrong."""
+    """Load and validate a checkpoint; raise :class:`CheckpointError` with what is wrong.
+
+    Refused: a path that does not exist or is not a file, a file that is not safetensors (a pickle,
+    a truncated or corrupt file, an implausible header size), another format tag, metadata that is
+    missing or not the JSON expected (model config, joint names, metadata object), a model config
+    that is invalid or disagrees with the joint names or the phase type, tensors missing, extra or
+    of another shape than the model config's architecture (compared before the network is built,
+    so a config that describes a huge network allocates nothing), non-float, NaN or inf tensors,
+    and a normalization whose standard deviations are not positive.
+    """
     path = pathlib.Path(path)
     meta, tensors = read_safetensors(path, error=CheckpointError, **_WORDING)
-    if meta.get("format") != FORMAT:
-        raise CheckpointError(f"model file '{path}' has format '{meta.get('format')}'; expected '{FORMAT}'")
+    if "format" not in meta:
+        raise CheckpointError(f"model file '{path}' has no format tag; expected '{FORMAT}' ({_WORDING['written']})")
+    if meta["format"] != FORMAT:
+        raise CheckpointError(f"model file '{path}' has format '{meta['format']}'; expected '{FORMAT}'")
+    config = metadata_json(meta, "model_config", path, error=CheckpointError)
     try:
-        cfg = ModelConfig.from_json(json.loads(meta["model_config"]))
-        joint_names = tuple(json.loads(meta["joint_names"]))
-        extra = json.loads(meta.get("metadata", "{}"))
-    except (KeyError, ValueError, TypeError) as exc:
-        raise CheckpointError(f"model file '{path}' has invalid metadata: {exc}") from exc
+        cfg = ModelConfig.from_json(config)
+    except (ValueError, TypeError) as exc:
+        raise CheckpointError(f"model file '{path}' has invalid metadata: model_config: {exc}") from exc
+    joint_names = joint_names_json(meta, "joint_names", path, CheckpointError)
+    extra = metadata_json(meta, "metadata", path, default={}, error=CheckpointError)
     if len(joint_names) != cfg.n_joints:
         raise CheckpointError(f"model file '{path}' names {len(joint_names)} joints but its model has {cfg.n_joints}")
+    if meta.get("phase_type", cfg.phase_type) != cfg.phase_type:
+        raise CheckpointError(f"model file '{path}' has phase type '{meta['phase_type']}' but its model config "
+                              f"'{cfg.phase_type}'")
+    shapes = module_shapes(lambda: DeepProMPNet(cfg), "net.") | normalization_shapes(cfg.n_joints, cfg.context_dims)
+    check_tensors(tensors, shapes, path, f"its model config ({cfg.n_joints} joints, latent_dim {cfg.latent_dim}, "
+                  f"hidden {cfg.hidden})", CheckpointError)
     norm = read_normalization(tensors, cfg.n_joints, cfg.context_dims, path, CheckpointError)
-    for k, v in tensors.items():
-        if v.is_floating_point() and not torch.isfinite(v).all():
-            raise CheckpointError(f"model file '{path}': tensor '{k}' contains NaN or inf")
     state = {k[4:]: v for k, v in tensors.items() if k.startswith("net.")}
     ck = Checkpoint(cfg, state, norm, joint_names, extra)
-    ck.build()  # shape check now, so a bad file is refused at load time
+    ck.build()  # the weights load into the architecture now, so a bad file is refused at load time
     return ck
-
