@@ -3,7 +3,9 @@ phase clock, reference derivatives, and the Ruckig
 streamer with real ruckig (no mocks). Limits are checked on every produced sample with
 check_limits: |qd| <= v, |qdd| <= a per sample and |Δq|/dt <= v, |Δqd|/dt <= a,
 |Δqdd|/dt <= j between successive samples (finite-difference jerk of the reported
-accelerations), relative tolerance 1e-6, positions within [lower, upper] up to 1e-9 rad."""
+accelerations), relative tolerance 1e-6, positions within [lower, upper] up to 1e-9 rad; with
+sample times, across gaps by their length (a displaced command and a jump across missing samples
+are found)."""
 import math
 
 import numpy as np
@@ -383,6 +385,69 @@ def test_check_limits_reports_violations():
     q[4] = 1.5
     r = check_limits(q, qd, np.zeros((5, 1)), DT, limits)
     assert r.position_excess == pytest.approx(0.5) and not r.ok()
+
+
+def _cruise(n, v=1.0):
+    """n samples of one joint moving at constant velocity v from 0 (period DT): q, qd of shape (n, 1)."""
+    t = np.arange(n) * DT
+    return (v * t)[:, None], np.full((n, 1), v)
+
+
+def test_check_limits_finds_one_displaced_command():
+    """A single command off the path by 10 periods of motion: its velocity is within the limit, only
+    |Δq| to its neighbours shows the jump (in and out: two samples)."""
+    limits = JointLimits([-1.0], [1.0], [1.0], [2.0], [10.0])
+    q, qd = _cruise(50, 0.5)
+    r = check_limits(q, qd, None, DT, limits)
+    assert r.ok() and r.violations == 0 and r.fd_velocity_ratio == pytest.approx(0.5)
+    q[20] += 0.01
+    r = check_limits(q, qd, None, DT, limits)
+    assert not r.ok() and r.violations == 2 and r.worst[:2] == ("fd_velocity", 19)
+    assert r.fd_velocity_ratio == pytest.approx(10.5) and r.velocity_ratio == pytest.approx(0.5)
+    # with the stream's stamps: the same jump, the same count
+    r = check_limits(q, qd, None, DT, limits, t=np.arange(50) * DT)
+    assert r.violations == 2 and r.fd_velocity_ratio == pytest.approx(10.5)
+
+
+def test_check_limits_checks_across_gaps_by_their_length():
+    """Samples 10..12 missing (a gap of 4 periods): at full speed 4 DT v_max of motion across it is
+    within the limits; more is a jump, found although the samples on either side are fine. Without
+    the times the gap would count as one period."""
+    limits = JointLimits([-1.0], [1.0], [1.0], [2.0], [10.0])
+    q, qd = _cruise(40, 1.0)
+    t = np.arange(40) * DT
+    keep = np.r_[0:10, 13:40]
+    r = check_limits(q[keep], qd[keep], None, DT, limits, t=t[keep])
+    assert r.ok() and r.violations == 0 and r.fd_velocity_ratio == pytest.approx(1.0)
+    assert check_limits(q[keep], qd[keep], None, DT, limits).fd_velocity_ratio == pytest.approx(4.0)
+    q[13:] += 0.002                                         # 6 DT v_max of motion in 4 periods
+    r = check_limits(q[keep], qd[keep], None, DT, limits, t=t[keep])
+    assert not r.ok() and r.violations == 1 and r.worst == ("fd_velocity", 9, 0)
+    assert r.fd_velocity_ratio == pytest.approx(1.5)
+    # a velocity change across the gap: a_max allows 4 DT a_max = 0.008 rad/s in 4 periods
+    q, qd = _cruise(40, 0.5)
+    qd[13:] += 0.008
+    assert check_limits(q[keep], qd[keep], None, DT, limits, t=t[keep]).fd_acceleration_ratio == pytest.approx(1.0)
+    qd[13:] += 0.004
+    r = check_limits(q[keep], qd[keep], None, DT, limits, t=t[keep])
+    assert r.fd_acceleration_ratio == pytest.approx(1.5) and r.violations >= 1 and not r.ok()
+    with pytest.raises(ValueError, match="increase strictly"):
+        check_limits(q[:3], qd[:3], None, DT, limits, t=[0.0, DT, DT])
+    with pytest.raises(ValueError, match="one time per sample"):
+        check_limits(q[:3], qd[:3], None, DT, limits, t=[0.0, DT])
+
+
+def test_check_limits_without_accelerations_takes_the_jerk_between_interval_midpoints():
+    """q = j t³ / 6 at the jerk limit, sampled with gaps: the mean accelerations of consecutive
+    intervals differ by j_max times the distance of their midpoints, so the jerk ratio is exactly 1
+    at every interval, gap or not; 1 % more jerk is a violation at every sample from the third on."""
+    limits = JointLimits([-1.0], [1.0], [1.0], [2.0], [10.0])
+    t = np.r_[0:10, 13:20, 21:30, 35:40] * DT
+    for j, ok in ((10.0, True), (10.1, False)):
+        q, qd = (j * t ** 3 / 6)[:, None], (j * t ** 2 / 2)[:, None]
+        r = check_limits(q, qd, None, DT, limits, t=t)
+        assert r.jerk_ratio == pytest.approx(j / 10.0, rel=1e-9) and r.ok() == ok
+        assert r.violations == (0 if ok else t.size - 2)
 
 
 def test_continuous_joint_without_position_limits_streams_to_any_angle():

@@ -5,8 +5,10 @@ them.
 (d,)); :class:`~deepprompt_ros.execution.ruckig_streamer.RuckigStreamer` keeps every sample it
 produces within them. :func:`check_limits` measures a sampled trajectory against the limits
 (tests and benchmarks): every sample's |qd| <= v_max and |qdd| <= a_max, successive samples'
-|Δq|/dt <= v_max, |Δqd|/dt <= a_max and |Δqdd|/dt <= j_max (finite-difference jerk of the
-reported accelerations), and lower <= q <= upper.
+|Δq|/h <= v_max, |Δqd|/h <= a_max and |Δqdd|/h <= j_max (finite-difference jerk of the
+reported accelerations), and lower <= q <= upper, where h is the time between the two samples
+(dt, or k dt across a gap of k periods when sample times are given: a position jump is found
+between neighbours and across skipped or lost samples alike).
 """
 from __future__ import annotations
 
@@ -92,15 +94,25 @@ class LimitReport(NamedTuple):
     position_excess : float
         max over samples and joints of max(lower - q, q - upper, 0) [rad].
     velocity_ratio, acceleration_ratio : float
-        max |qd| / v_max and max |qdd| / a_max over the samples.
+        max |qd| / v_max and max |qdd| / a_max over the samples (without reported accelerations:
+        the mean acceleration of each interval, as ``fd_acceleration_ratio``).
     jerk_ratio : float
-        max |qdd[k+1] - qdd[k]| / dt / j_max (finite-difference jerk of the samples).
+        max |Δqdd| / h / j_max (finite-difference jerk of the samples' accelerations; without
+        reported accelerations: the change of the mean acceleration between consecutive intervals
+        over the distance of their midpoints).
     fd_velocity_ratio, fd_acceleration_ratio : float
-        max |Δq| / dt / v_max and max |Δqd| / dt / a_max (mean velocity / acceleration over
-        each period: must not exceed the limits either).
+        max |Δq| / h / v_max and max |Δqd| / h / a_max over the intervals h between consecutive
+        samples (mean velocity / acceleration over each interval: must not exceed the limits
+        either). ``fd_velocity_ratio`` is the largest position jump between consecutive samples
+        as a fraction of what the velocity limit allows in their interval.
     worst : tuple (str, int, int)
         (quantity, sample index, joint index) of the largest ratio; for finite-difference
-        quantities the sample index k refers to the step from sample k to k + 1.
+        quantities the sample index k refers to the step from sample k to k + 1 (for the jerk
+        without reported accelerations, to the intervals k -> k + 1 and k + 1 -> k + 2).
+    violations : int
+        Samples at which some limit is exceeded (beyond the tolerances given to
+        :func:`check_limits`): the sample's own position, velocity or acceleration, or a finite
+        difference that ends at it.
     """
 
     position_excess: float
@@ -110,6 +122,7 @@ class LimitReport(NamedTuple):
     fd_velocity_ratio: float
     fd_acceleration_ratio: float
     worst: tuple[str, int, int]
+    violations: int = 0
 
     def ok(self, rtol: float = 1e-6, position_tol: float = 1e-9) -> bool:
         """All ratios <= 1 + rtol and positions within the limits up to position_tol."""
@@ -118,16 +131,33 @@ class LimitReport(NamedTuple):
         return self.position_excess <= position_tol and max(ratios) <= 1 + rtol
 
 
-def check_limits(q, qd, qdd, dt: float, limits: JointLimits) -> LimitReport:
+def check_limits(q, qd, qdd, dt: float, limits: JointLimits, t=None, *, rtol: float = 1e-6,
+                 position_tol: float = 1e-9) -> LimitReport:
     """Check a sampled joint trajectory against limits.
+
+    Every interval between consecutive samples is checked, however long: with sample times ``t``
+    a gap of k periods (lost or skipped samples) allows at most k dt v_max of motion and
+    k dt a_max of velocity change, so a position jump across a gap is found as well as one
+    between neighbours.
 
     Parameters
     ----------
-    q, qd, qdd : array, shape (T, d)
-        Sampled positions, velocities, accelerations at period dt (include the start state as
-        the first row to check the first step too).
+    q, qd : array, shape (T, d)
+        Sampled positions and velocities (include the start state as the first row to check
+        the first step too).
+    qdd : array, shape (T, d), or None
+        Accelerations at the samples. None when the samples carry none (a sensor_msgs/JointState
+        command stream): the mean acceleration of each interval, Δqd / h, is checked against
+        a_max, and the jerk is its change between consecutive intervals over the distance of
+        their midpoints, (h_k + h_(k+1)) / 2.
     dt : float
+        Sample period [s]; the sample times are k dt when ``t`` is None.
     limits : JointLimits
+    t : array, shape (T,), optional
+        Sample times [s], strictly increasing (e.g. the commands' header stamps). The intervals
+        h_k = t_(k+1) - t_k replace dt in every finite difference.
+    rtol, position_tol : float
+        Tolerances of :attr:`LimitReport.violations` (as in :meth:`LimitReport.ok`).
 
     Returns
     -------
@@ -135,24 +165,45 @@ def check_limits(q, qd, qdd, dt: float, limits: JointLimits) -> LimitReport:
     """
     q = np.asarray(q, dtype=float)
     qd = np.asarray(qd, dtype=float)
-    qdd = np.asarray(qdd, dtype=float)
     d = limits.n_joints
-    for name, arr in (("q", q), ("qd", qd), ("qdd", qdd)):
+    arrays = (("q", q), ("qd", qd)) + ((("qdd", np.asarray(qdd, dtype=float)),) if qdd is not None else ())
+    for name, arr in arrays:
         if arr.ndim != 2 or arr.shape[1] != d or arr.shape[0] == 0:
             raise ValueError(f"{name} must have shape (T >= 1, {d}); got {arr.shape}")
-    if not (q.shape == qd.shape == qdd.shape):
-        raise ValueError(f"q, qd, qdd shapes differ: {q.shape}, {qd.shape}, {qdd.shape}")
+    if any(arr.shape != q.shape for _, arr in arrays):
+        raise ValueError(f"q, qd, qdd shapes differ: {', '.join(str(a.shape) for _, a in arrays)}")
+    n = q.shape[0]
+    if t is None:
+        h = np.full((n - 1, 1), float(dt))
+    else:
+        t = np.asarray(t, dtype=float)
+        if t.shape != (n,):
+            raise ValueError(f"t must have shape ({n},), one time per sample; got {t.shape}")
+        h = np.diff(t)[:, None]
+        if np.any(~(h > 0)):
+            k = int(np.argmax(~(h > 0)))
+            raise ValueError(f"sample times must increase strictly; t[{k + 1}] = {t[k + 1]!r} after "
+                             f"t[{k}] = {t[k]!r}")
     excess = np.maximum(np.maximum(limits.lower - q, q - limits.upper), 0.0)
+    fd_acc = np.diff(qd, axis=0) / h                        # mean acceleration of each interval
+    if qdd is None:
+        acceleration = np.abs(fd_acc) / limits.max_acceleration
+        jerk = np.abs(np.diff(fd_acc, axis=0)) / (0.5 * (h[:-1] + h[1:])) / limits.max_jerk
+    else:
+        qdd = np.asarray(qdd, dtype=float)
+        acceleration = np.abs(qdd) / limits.max_acceleration
+        jerk = np.abs(np.diff(qdd, axis=0)) / h / limits.max_jerk
     quantities = {
         "velocity": np.abs(qd) / limits.max_velocity,
-        "acceleration": np.abs(qdd) / limits.max_acceleration,
-        "jerk": np.abs(np.diff(qdd, axis=0)) / dt / limits.max_jerk,
-        "fd_velocity": np.abs(np.diff(q, axis=0)) / dt / limits.max_velocity,
-        "fd_acceleration": np.abs(np.diff(qd, axis=0)) / dt / limits.max_acceleration,
+        "acceleration": acceleration,
+        "jerk": jerk,
+        "fd_velocity": np.abs(np.diff(q, axis=0)) / h / limits.max_velocity,
+        "fd_acceleration": np.abs(fd_acc) / limits.max_acceleration,
     }
     maxima = {}
     worst = ("none", 0, 0)
     worst_val = -1.0
+    bad = (excess > position_tol).any(axis=1)
     for name, r in quantities.items():
         if r.size == 0:
             maxima[name] = 0.0
@@ -162,5 +213,8 @@ def check_limits(q, qd, qdd, dt: float, limits: JointLimits) -> LimitReport:
         if r[idx] > worst_val:
             worst_val = float(r[idx])
             worst = (name, int(idx[0]), int(idx[1]))
+        # the sample each row ends at: per-sample rows at 0, differences of samples (or of intervals) later
+        bad[n - r.shape[0]:] |= (r > 1 + rtol).any(axis=1)
     return LimitReport(float(excess.max()), maxima["velocity"], maxima["acceleration"],
-                       maxima["jerk"], maxima["fd_velocity"], maxima["fd_acceleration"], worst)
+                       maxima["jerk"], maxima["fd_velocity"], maxima["fd_acceleration"], worst,
+                       int(bad.sum()))
