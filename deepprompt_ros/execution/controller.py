@@ -289,16 +289,21 @@ class ExecutionController:
             self._deliver_now(s.finishes)
         return s
 
-    def check_faults(self, measured: MeasuredState | None, now: float) -> None:
-        """Stale joint_states and tracking-error bound -> brake with the right code."""
+    def check_faults(self, measured: MeasuredState | None, now: float, refused: str = "") -> None:
+        """Stale joint_states and tracking-error bound -> brake with the right code.
+
+        ``refused``: why the robot states received since ``measured`` were refused ('' = none was),
+        named in the outcome of a stale stop."""
         a = self.active
         if a is None or a.stage == Stage.STOPPING:
             return
         timeout = self.config.stale_timeout
         if measured is None or now - measured.stamp > timeout:
             age = math.inf if measured is None else now - measured.stamp
+            why = (f"the robot's joint_states are refused ({refused})" if refused
+                   else "the robot stopped reporting its state")
             self._stop(Code.ROBOT_STATE_STALE, f"no joint_states for {age:.3f} s (stale_timeout {timeout:g} s): "
-                       "the robot stopped reporting its state; braked to rest")
+                       f"{why}; braked to rest")
             return
         bound = self.config.max_tracking_error
         if bound > 0 and self.tracking_error > bound:

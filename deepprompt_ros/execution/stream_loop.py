@@ -151,6 +151,7 @@ class StreamLoop:
         self._poll = poll_measured
         self._thread_setup = thread_setup or (lambda name, fifo_priority: "")
         self._measured: MeasuredState | None = None
+        self._refused: tuple[str, float] | None = None  # (reason, time.monotonic()) of the latest refusal
         self._commands: collections.deque[_Command] = collections.deque()
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -168,6 +169,12 @@ class StreamLoop:
     # ------------------------------------------------------------------ inputs (any thread)
     def update_measured(self, q: np.ndarray, qd: np.ndarray | None = None) -> None:
         self._measured = MeasuredState(q, qd, time.monotonic())
+
+    def refuse_measured(self, reason: str) -> None:
+        """A robot state arrived and was refused (``reason``: what was wrong with it). It does not
+        refresh the state; a goal stopped for stale joint states while the latest ones are refused
+        says why in its outcome."""
+        self._refused = (reason, time.monotonic())
 
     @property
     def measured(self) -> MeasuredState | None:
@@ -236,7 +243,9 @@ class StreamLoop:
                     ctl.cancel(goal)
                 case _SetRate(goal, rate):
                     ctl.set_rate(goal, rate)
-        ctl.check_faults(measured, now)
+        refused = self._refused
+        ctl.check_faults(measured, now, refused[0] if refused is not None and
+                         (measured is None or refused[1] > measured.stamp) else "")
         ctl.compute_next()
         self.stats.ticks += 1
         if self._pub_traj is not None and self.stats.ticks % self._traj_every == 0 and ctl.buffer:

@@ -283,7 +283,7 @@ def _child(fd: int, parent_pid: int) -> int:
     loop = StreamLoop(ExecutionController(setup.limits, setup.dt, cfg), cfg, io.publish_command,
                       io.publish_trajectory, on_error=lambda m: log.error(m, throttle_duration_sec=1.0),
                       poll_measured=io.poll_joint_state, thread_setup=realtime.prepare_thread)
-    io.on_measured = loop.update_measured
+    io.on_measured, io.on_refused = loop.update_measured, loop.refuse_measured
     goals: dict[int, _LinkedGoal] = {}
     wake, stop = threading.Event(), threading.Event()
     send_lock = threading.Lock()

@@ -16,6 +16,7 @@ Two ways to talk to ROS (parameter ``fast_path``), with the same topics and mess
 """
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -45,6 +46,9 @@ class LoopIO:
         Resolved names; '' = that output is off.
     """
 
+    #: s between two log lines of the same refusal reason (a new reason is logged at once)
+    REFUSAL_LOG_PERIOD = 2.0
+
     def __init__(self, node, names, limits, cfg, command_topic: str, trajectory_topic: str,
                  joint_states_topic: str):
         self.node = node
@@ -68,7 +72,9 @@ class LoopIO:
         self._state_index: tuple | None = None
         self._perf_to_ros = node.get_clock().now().nanoseconds - int(time.perf_counter() * 1e9)
         self.on_measured = lambda q, qd: None   #: set by the owner: receives (q, qd) in robot order
+        self.on_refused = lambda reason: None   #: set by the owner: receives why a message was refused
         self.received_any = False
+        self._refusal: tuple[str, float] = ("", -math.inf)  # the reason logged last, when
 
     @property
     def publish_command(self):
@@ -113,25 +119,48 @@ class LoopIO:
             self._use_joint_state(msg)
 
     def _use_joint_state(self, msg: JointState) -> None:
-        """Validate ``msg`` (a new joint-name layout once) and pass (q, qd) to ``on_measured``."""
+        """Check ``msg`` and pass (q, qd) to ``on_measured``; a refused message goes to ``on_refused``
+        with the reason, which is logged (each new reason at once, a repeated one every
+        ``REFUSAL_LOG_PERIOD`` s)."""
         try:
-            key = tuple(msg.name)
-            if self._state_index is None or self._state_index[0] != key:  # validate a new layout once
-                js = conv.joint_state_to_arrays(msg)
-                order = conv.reorder_joints(js.names, np.arange(len(js.names)), self.names, label="joint_states")
-                self._state_index = (key, order.astype(int))
-            idx = self._state_index[1]
-            q = np.asarray(msg.position, dtype=np.float64)[idx]
-            qd = np.asarray(msg.velocity, dtype=np.float64)[idx] if len(msg.velocity) == len(key) else None
-            if not np.all(np.isfinite(q)):
-                raise ValueError("position contains NaN or inf")
+            q, qd = self._read_joint_state(msg)
         except (ValueError, IndexError) as exc:
-            self._log.warn(f"joint_states ignored: {exc}", throttle_duration_sec=2.0)
+            reason = str(exc)
+            now = time.monotonic()
+            if reason != self._refusal[0] or now - self._refusal[1] >= self.REFUSAL_LOG_PERIOD:
+                self._refusal = (reason, now)
+                self._log.warn(f"joint_states ignored: {reason}")
+            self.on_refused(reason)
             return
         if not self.received_any:
             self.received_any = True
             self._log.info(f"receiving joint_states on '{self._state_sub.topic_name}'")
         self.on_measured(q, qd)
+
+    def _read_joint_state(self, msg: JointState):
+        """(q, qd or None) of the robot's joints in robot order; ValueError saying what is wrong.
+
+        A message must name every joint of the robot (others are ignored) once, with one position per
+        name, velocities and efforts one per name or none, and finite positions and velocities for the
+        robot's joints. The name layout is looked up once; the sizes and values of every message are
+        checked."""
+        key = tuple(msg.name)
+        n = len(key)
+        if self._state_index is None or self._state_index[0] != key:  # a new layout: names checked once
+            js = conv.joint_state_to_arrays(msg)
+            order = conv.reorder_joints(js.names, np.arange(n), self.names, label="joint_states")
+            self._state_index = (key, order.astype(int))
+        elif len(msg.position) != n or len(msg.velocity) not in (0, n) or len(msg.effort) not in (0, n):
+            conv.joint_state_to_arrays(msg)  # raises with the one wording of a wrong size
+        idx = self._state_index[1]
+        q = np.asarray(msg.position, dtype=np.float64)[idx]
+        qd = np.asarray(msg.velocity, dtype=np.float64)[idx] if len(msg.velocity) else None
+        for field, values in (("position", q), ("velocity", qd)):
+            if values is not None and not np.all(np.isfinite(values)):
+                j = int(np.argmin(np.isfinite(values)))
+                raise ValueError(f"{field} of {self.names[j]} is {values[j]}; expected a finite value for every "
+                                 f"joint of the robot")
+        return q, qd
 
     def destroy(self) -> None:
         """Destroy the publishers and the subscription (the node stays)."""

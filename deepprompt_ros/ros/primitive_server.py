@@ -126,7 +126,7 @@ class PrimitiveServer(Node):
                                    on_error=lambda m: log.error(m, throttle_duration_sec=1.0),
                                    poll_measured=self._io.poll_joint_state,
                                    thread_setup=realtime.prepare_thread)
-            self._io.on_measured = self.loop.update_measured
+            self._io.on_measured, self._io.on_refused = self.loop.update_measured, self.loop.refuse_measured
         elif not self.loop.wait_ready(60.0):
             # its publishers exist before this node offers Execute (subscribers discover them meanwhile)
             self.loop.shutdown()
