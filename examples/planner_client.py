@@ -35,9 +35,17 @@ def main(argv=None) -> int:
     ex = MultiThreadedExecutor()
     ex.add_node(node)
     threading.Thread(target=ex.spin, daemon=True).start()
+    # joint_states and feedback arrive in the executor's threads while this thread reads them: both
+    # lists are appended and copied under one lock, and read only from a copy
+    lock = threading.Lock()
     states: list[tuple[float, dict]] = []
-    node.create_subscription(JointState, "joint_states",
-                             lambda m: states.append((time.monotonic(), dict(zip(m.name, m.position)))), 100)
+
+    def on_state(m: JointState) -> None:
+        sample = (time.monotonic(), dict(zip(m.name, m.position)))
+        with lock:
+            states.append(sample)
+
+    node.create_subscription(JointState, "joint_states", on_state, 100)
     cond = node.create_client(Condition, f"{args.server}/condition")
     act = ActionClient(node, Execute, f"{args.server}/execute")
     try:
@@ -66,8 +74,14 @@ def main(argv=None) -> int:
         joint_names = list(r.preview.joint_names)
         # 3) execute, logging the phase feedback with its arrival time
         feedback: list[tuple[float, float]] = []
+
+        def on_feedback(f) -> None:
+            sample = (time.monotonic(), f.feedback.phase)
+            with lock:
+                feedback.append(sample)
+
         goal = Execute.Goal(handle=r.handle, duration=args.duration)
-        fut = act.send_goal_async(goal, feedback_callback=lambda f: feedback.append((time.monotonic(), f.feedback.phase)))
+        fut = act.send_goal_async(goal, feedback_callback=on_feedback)
         while not fut.done():
             time.sleep(0.01)
         handle = fut.result()
@@ -80,13 +94,16 @@ def main(argv=None) -> int:
         res = res_fut.result().result
         print(f"execute: success={res.success} code={res.code.value} '{res.message}' "
               f"max_tracking_error={res.max_tracking_error:.2e} rad")
-        # 4) measured arm state when the phase crossed the via-point
-        t_via = next((t for t, ph in feedback if ph >= args.via_phase), None)
-        if t_via is None or not states:
+        # 4) measured arm state when the phase crossed the via-point (one snapshot of each list, in
+        # time order: the executor's threads may have run callbacks out of order)
+        with lock:
+            feedback_seen, states_seen = sorted(feedback), sorted(states, key=lambda s: s[0])
+        t_via = next((t for t, ph in feedback_seen if ph >= args.via_phase), None)
+        if t_via is None or not states_seen:
             print("no feedback/joint_states received around the via-point", file=sys.stderr)
             return 1
-        ts = np.array([t for t, _ in states])
-        qs = np.array([[s.get(j, np.nan) for j in joint_names] for _, s in states])
+        ts = np.array([t for t, _ in states_seen])
+        qs = np.array([[s.get(j, np.nan) for j in joint_names] for _, s in states_seen])
         q_at = np.array([np.interp(t_via, ts, qs[:, j]) for j in range(len(joint_names))])
         err = np.abs(q_at - via)
         print("via-point error achieved by the simulated arm (rad): "
