@@ -278,6 +278,11 @@ MALFORMED = [
     ("refine tolerance NaN", dict(refine=True, refine_tolerance=float("nan")), Code.INVALID_REQUEST,
      "refine_tolerance nan is invalid"),
     ("refine budget", dict(refine=True, refine_max_iterations=10**6), Code.INVALID_REQUEST, "too large"),
+    # finite but huge values overflow into a NaN latent: refused, never a SUCCESS with a NaN preview
+    ("huge position", dict(via_points=[via(0.5, np.r_[SPEC.home[:5], 1e308])]), Code.INVALID_REQUEST,
+     "NaN or inf (an overflow): largest |via-point position| 1e+308 rad"),
+    ("huge context", dict(contexts=[ContextIn("object", np.array([1e308, 0.0, 0.0]))]), Code.INVALID_REQUEST,
+     "largest |context value| 1e+308"),
 ]
 
 
@@ -415,6 +420,15 @@ def test_execute_requests_are_validated(core):
     got, msg = code_of(core.plan_execution, ExecuteRequest(w, duration=30.0, cycles=10**7))
     assert got == Code.INVALID_REQUEST and "max_cycles" in msg
     assert core.plan_execution(ExecuteRequest(w, duration=30.0, cycles=3)).cycles == 3
+
+
+def test_a_handle_that_decodes_to_nan_is_refused_before_the_control_loop(core):
+    from deepprompt_ros.primitive.latent import LatentGaussian
+    from deepprompt_ros.server.handles import ConditionedLatent
+
+    h, _ = core.handles.put(ConditionedLatent("reach", LatentGaussian(np.full(8, np.nan), np.ones(8))), "reach")
+    got, msg = code_of(core.plan_execution, ExecuteRequest(h, duration=2.0))
+    assert got == Code.INVALID_REQUEST and f"handle '{h}' decodes to a trajectory with NaN or inf" in msg, msg
 
 
 def test_trajectory_outside_the_position_limits_is_refused(models, tmp_path):

@@ -269,6 +269,16 @@ class PrimitiveServerCore:
                                      images, image_weight)
         except ValueError as exc:
             raise RequestError(Code.INVALID_REQUEST, str(exc)) from None
+        if not (np.all(np.isfinite(latent.mean)) and np.all(np.isfinite(latent.var))):
+            # finite but huge inputs (e.g. 1e308) overflow in the normalization or the aggregation
+            largest_ctx = max((float(np.abs(v).max()) for v in contexts.values()), default=0.0)
+            weights = [*vw[:n], *(w for ws in cweights.values() for w in ws), image_weight]
+            raise RequestError(Code.INVALID_REQUEST, (
+                f"the via-points and contexts give primitive '{prim.name}' a latent distribution with NaN or inf "
+                f"(an overflow): largest |via-point position| {float(np.abs(vy).max()) if n else 0.0:.3g} rad, "
+                f"largest |context value| {largest_ctx:.3g}, largest weight {max(weights):.3g}; expected joint "
+                "positions within the robot's joint ranges, context values of the size of the training data and "
+                "weights of moderate size"))
 
         # ---- error of the executed mean at the via-points, optional refinement (paper Eq. 5)
         active = vw > 0
@@ -387,6 +397,9 @@ class PrimitiveServerCore:
                                    " (parameter max_cycles)")
         x = np.linspace(0.0, 1.0, cfg.execution_grid_points)
         y = prim.to_robot_order(self._decode(prim, dist, x, dist.eps))
+        if not np.all(np.isfinite(y)):
+            raise RequestError(Code.INVALID_REQUEST, f"handle '{req.handle}' decodes to a trajectory with NaN or "
+                               "inf; condition again with via-points and contexts of moderate size")
         ref = ExecutionReference(y, rhythmic, cfg.derivative_step)
         if cfg.check_feasibility:
             self._check_positions(ref, x)
