@@ -21,7 +21,8 @@ Lifetime: the child asks the kernel to kill it when the server dies (``PR_SET_PD
 exits when the link closes, and ignores SIGINT (it shares the server's process group; the
 server stops it with ``StopLoop`` on its way down). If the child exits unexpectedly, every
 pending goal ends with INTERNAL_ERROR (the action never hangs), the error is logged, and a new
-child is started (at most ``MAX_RESTARTS`` times).
+child is started (at most ``MAX_RESTARTS`` times); a goal sent while it starts waits for its first
+robot state (at most ``RESTART_GRACE`` s) and is executed by it.
 """
 from __future__ import annotations
 
@@ -64,6 +65,9 @@ class ControlProcess:
     """
 
     MAX_RESTARTS = 5
+    #: s after a restart during which a goal waits for the new process's first robot state (starting
+    #: the interpreter, rclpy and the node, and discovering joint_states take a second or two)
+    RESTART_GRACE = 5.0
 
     def __init__(self, setup: LoopSetup, logger):
         self._setup = setup
@@ -80,6 +84,8 @@ class ControlProcess:
         self.warnings = ""  #: the child's start-up warnings (refused priority or CPU), "" = none
         self.pid = 0
         self._ready = threading.Event()
+        self._state_seen = threading.Event()  # the current child has reported a robot state
+        self._grace_until = 0.0  # time.monotonic() until which a goal waits for a restarted child's state
         self._spawn()
 
     # ------------------------------------------------------------------ child lifecycle
@@ -119,6 +125,8 @@ class ControlProcess:
             self._dead = why
             pending, self._goals = list(self._goals.values()), {}
             self._stamp = None
+            self._state_seen.clear()
+            self._grace_until = time.monotonic() + self.RESTART_GRACE
         for goal in pending:
             goal._finish(Outcome(Code.INTERNAL_ERROR, f"{why}; the command stream stopped", goal.max_tracking_error,
                                  goal.progress.phase, goal.progress.cycle))
@@ -128,6 +136,8 @@ class ControlProcess:
                 return
             if self.restarts >= self.MAX_RESTARTS:
                 self._dead = why + f" (not restarted: {self.restarts} restarts already)"
+                self._grace_until = 0.0
+                self._state_seen.set()  # nothing to wait for
                 return
             self.restarts += 1
             self._spawn()
@@ -137,6 +147,8 @@ class ControlProcess:
     def _handle(self, msg) -> None:
         if isinstance(msg, LoopStatus):
             self._stamp = msg.joint_states_stamp
+            if msg.joint_states_stamp is not None:
+                self._state_seen.set()
             goal = self._goals.get(msg.key)
             if goal is not None and msg.progress is not None and not goal.done.is_set():
                 goal._progress, goal._tracking_error = msg.progress, msg.progress.tracking_error
@@ -201,7 +213,13 @@ class ControlProcess:
         return goal
 
     def measured_age(self) -> float:
+        """Seconds since the robot state the control process received last (inf: none yet). Within
+        ``RESTART_GRACE`` s of a restart, first waits for the new process's first state, so that a
+        goal sent while it starts is executed by it rather than refused."""
         s = self._stamp
+        if s is None and (wait := self._grace_until - time.monotonic()) > 0:
+            self._state_seen.wait(wait)
+            s = self._stamp
         return math.inf if s is None else time.monotonic() - s
 
     def summary(self) -> str:
