@@ -1,7 +1,9 @@
 """primitive_server's control loop in a child process (loop_process: true, the default):
 a crash of the child ends the running goal with INTERNAL_ERROR (no hang) and a new child takes
 over; the child dies with the server (no orphan); every thread of the child runs SCHED_FIFO by
-default (or the refusal is logged); ``control_cpu`` pins it; the in-process mode (loop_process:
+default where the kernel grants it, and where it refuses (checked here even as root, with the
+server started without CAP_SYS_NICE and with RLIMIT_RTPRIO 0) the refusal is a warning, every thread
+runs normal scheduling and goals execute; ``control_cpu`` pins it; the in-process mode (loop_process:
 false) still executes, with the fast path and with plain rclpy. Real processes, real DDS (LOCALHOST discovery, random domain)."""
 import contextlib
 import os
@@ -9,6 +11,7 @@ import pathlib
 import re
 import shutil
 import signal
+import sys
 import time
 
 import pytest
@@ -19,7 +22,7 @@ from deepprompt_msgs.msg import ResultCode
 from deepprompt_msgs.srv import Condition
 from rclpy.action import ActionClient
 
-from deepprompt_ros.ros.testing import NodeProcess, RosTestClient, isolated_ros_env
+from deepprompt_ros.ros.testing import NodeProcess, RosTestClient, isolated_ros_env, write_params_file
 
 SRV = "/primitive_server"
 CHILD = re.compile(r"control loop running in its own process \(pid (\d+)\)")
@@ -33,8 +36,21 @@ def alive(pid: int) -> bool:
         return False
 
 
-def start(tmp, name, params, model):
-    """sim_bridge + primitive_server serving ``model`` (copied into ``tmp``) as 'reach'."""
+#: Runs the command of its arguments with the real-time priority refused even to root: RLIMIT_RTPRIO
+#: 0, and CAP_SYS_NICE (which lets a process exceed that limit) dropped from the capability bounding
+#: set, so the exec'd process and its children do not have it. Without CAP_SETPCAP (not root) the
+#: drop is refused, and not needed: such a process has no CAP_SYS_NICE to lose.
+NO_REALTIME = """
+import ctypes, os, resource, sys
+resource.setrlimit(resource.RLIMIT_RTPRIO, (0, 0))
+ctypes.CDLL(None, use_errno=True).prctl(24, 23, 0, 0, 0)  # PR_CAPBSET_DROP, CAP_SYS_NICE
+os.execv(sys.argv[1], sys.argv[1:])
+"""
+
+
+def start(tmp, name, params, model, no_realtime=False):
+    """sim_bridge + primitive_server serving ``model`` (copied into ``tmp``) as 'reach';
+    ``no_realtime``: the server started through :data:`NO_REALTIME`."""
     reach = tmp / "reach.safetensors"
     if not reach.exists():
         shutil.copy(model, reach)
@@ -43,8 +59,14 @@ def start(tmp, name, params, model):
     env = isolated_ros_env(tmp / f"log_{name}")
     sim = NodeProcess.start_module("deepprompt_ros.ros.sim_bridge", env, params={
         "camera.enabled": False, "publish_clock": False})
-    server = NodeProcess.start_module("deepprompt_ros.ros.primitive_server", env, params={
-        "primitives_file": str(prims), "stale_timeout": 1.0, **params})
+    server_params = {"primitives_file": str(prims), "stale_timeout": 1.0, **params}
+    if no_realtime:
+        params_file = write_params_file(tmp / f"server_{name}.yaml", server_params)
+        server = NodeProcess([sys.executable, "-c", NO_REALTIME, sys.executable, "-m",
+                              "deepprompt_ros.ros.primitive_server", "--ros-args", "--params-file", str(params_file)],
+                             env, tmp / f"server_{name}.log")
+    else:
+        server = NodeProcess.start_module("deepprompt_ros.ros.primitive_server", env, params=server_params)
     return env, sim, server
 
 
@@ -96,25 +118,58 @@ def thread_policies(pid: int) -> dict[str, tuple[int, int]]:
     return out
 
 
+def sched_fifo_granted() -> bool:
+    """Whether the kernel grants this process SCHED_FIFO (the servers these tests start inherit what
+    it may do); its own scheduling is restored."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+    except PermissionError:
+        return False
+    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    return True
+
+
+def assert_refused_and_normal(server, policies) -> None:
+    """The refusal of SCHED_FIFO 50 is a warning in the log and every thread of the control process
+    runs normal scheduling."""
+    assert "SCHED_FIFO priority 50 refused" in server.output(), server.output_tail()
+    assert all(pol == os.SCHED_OTHER for pol, _ in policies.values()), policies
+
+
 def test_every_thread_of_the_control_process_runs_sched_fifo_by_default(nodes):
-    """realtime_priority 50 (the default): the control thread AND every other thread of the child
-    (status sender, link reader, JointTrajectory writer, the DDS threads) at SCHED_FIFO 50 — none of
-    them can hold the interpreter lock while preempted by an ordinary process. Where the kernel
-    refuses (no CAP_SYS_NICE), the refusal is a warning in the log and the loop runs normally."""
+    """realtime_priority 50 (the default): where the kernel grants it, the control thread AND every
+    other thread of the child (status sender, link reader, JointTrajectory writer, the DDS threads) at
+    SCHED_FIFO 50 — none of them can hold the interpreter lock while preempted by an ordinary process.
+    Where it refuses (no CAP_SYS_NICE and a lower RLIMIT_RTPRIO), the refusal is a warning in the log,
+    every thread runs normal scheduling and the goal executed all the same."""
     server = nodes["server"]
     assert run_goal(nodes["client"], nodes["ac"], server, 0.5).success  # every thread has been started
     pid = int(CHILD.findall(server.output())[-1])
     policies = thread_policies(pid)
     assert len(policies) >= 4, policies
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))  # can this machine grant it?
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    except PermissionError:
-        assert "SCHED_FIFO priority 50 refused" in server.output(), server.output_tail()
-        assert all(pol == os.SCHED_OTHER for pol, _ in policies.values()), policies
-        pytest.skip("SCHED_FIFO is not granted here: checked the refusal is logged and the loop runs normally")
-    assert all(v == (os.SCHED_FIFO, 50) for v in policies.values()), policies
-    assert any(name.startswith("control_loop") for name in policies), policies
+    if sched_fifo_granted():
+        assert all(v == (os.SCHED_FIFO, 50) for v in policies.values()), policies
+        assert any(name.startswith("control_loop") for name in policies), policies
+        assert "SCHED_FIFO priority 50 refused" not in server.output(), server.output_tail()
+    else:
+        assert_refused_and_normal(server, policies)
+
+
+def test_a_refused_realtime_priority_is_a_warning_and_goals_execute(tmp_path, tiny_reach_model):
+    """The refused path on any machine, root included: the server (and so its control process) is
+    started without CAP_SYS_NICE and with RLIMIT_RTPRIO 0 (:data:`NO_REALTIME`). The refusal is logged,
+    every thread of the child runs normal scheduling, and goals execute."""
+    with serving(tmp_path, "no_realtime", {}, tiny_reach_model, no_realtime=True) as (client, ac, server):
+        res = run_goal(client, ac, server, 1.0)
+        assert res.success, res.message
+        pid = int(CHILD.findall(server.output())[-1])
+        status = pathlib.Path(f"/proc/{pid}/status").read_text()
+        cap_eff = int(re.search(r"CapEff:\s*([0-9a-f]+)", status)[1], 16)
+        assert not cap_eff & (1 << 23), status  # CAP_SYS_NICE: the premise of the refusal
+        rtprio = re.search(r"Max realtime priority\s+(\d+)\s+(\d+)", pathlib.Path(f"/proc/{pid}/limits").read_text())
+        assert rtprio and rtprio.groups() == ("0", "0"), rtprio
+        assert_refused_and_normal(server, thread_policies(pid))
+        assert run_goal(client, ac, server, 0.5).success  # and keeps executing
 
 
 def test_child_crash_aborts_the_goal_and_a_new_child_takes_over(nodes):
@@ -155,10 +210,11 @@ def test_child_dies_with_the_server(nodes):
 
 
 @contextlib.contextmanager
-def serving(tmp_path, name, params, model):
+def serving(tmp_path, name, params, model, no_realtime=False):
     """sim_bridge + primitive_server with ``params`` serving ``model``, ready (action server up,
-    joint_states received): yields (client, action client, server); stops both processes."""
-    env, sim, server = start(tmp_path, name, params, model)
+    joint_states received): yields (client, action client, server); stops both processes.
+    ``no_realtime``: see :func:`start`."""
+    env, sim, server = start(tmp_path, name, params, model, no_realtime)
     try:
         with RosTestClient(env) as client:
             ac = ActionClient(client.node, Execute, f"{SRV}/execute")
