@@ -468,6 +468,14 @@ def contexts_from_msgs(msgs) -> list:
             for m in msgs]
 
 
+def _float64s(values) -> array.array:
+    """A ``float64[]`` field's value, row-major: array.array('d') is taken as it is, where a list
+    is checked value by value in Python (most of the time of building a preview message)."""
+    out = array.array("d")
+    out.frombytes(np.ascontiguousarray(values, dtype=np.float64).tobytes())
+    return out
+
+
 def preview_to_msg(preview):
     """``server.requests.Preview`` (phases (T,), mean/std (T, d)) -> ``deepprompt_msgs/TrajectoryPreview``
     (row-major T x d)."""
@@ -475,11 +483,8 @@ def preview_to_msg(preview):
 
     mean = np.asarray(preview.mean, dtype=np.float64)
     t, d = mean.shape
-    return TrajectoryPreview(joint_names=list(preview.joint_names),
-                             phases=np.asarray(preview.phases, dtype=np.float64).tolist(),
-                             mean=mean.reshape(-1).tolist(),
-                             std=np.asarray(preview.std, dtype=np.float64).reshape(-1).tolist(),
-                             n_points=t, n_joints=d)
+    return TrajectoryPreview(joint_names=list(preview.joint_names), phases=_float64s(preview.phases),
+                             mean=_float64s(mean), std=_float64s(preview.std), n_points=t, n_joints=d)
 
 
 class PreviewArrays(NamedTuple):
