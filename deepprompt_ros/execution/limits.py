@@ -19,6 +19,9 @@ import numpy as np
 
 __all__ = ["JointLimits", "LimitReport", "check_limits", "joint_vector"]
 
+#: An interval between two samples counts as one period when it is within this fraction of dt.
+_PERIOD_RTOL = 1e-3
+
 
 def joint_vector(name: str, value, n: int | None = None) -> np.ndarray:
     """``value`` as a float array of shape (n,) (a scalar is repeated n times); ValueError naming
@@ -98,8 +101,8 @@ class LimitReport(NamedTuple):
         the mean acceleration of each interval, as ``fd_acceleration_ratio``).
     jerk_ratio : float
         max |Δqdd| / h / j_max (finite-difference jerk of the samples' accelerations; without
-        reported accelerations: the change of the mean acceleration between consecutive intervals
-        over the distance of their midpoints).
+        reported accelerations: the change of the mean acceleration between consecutive
+        one-period intervals over the distance of their midpoints).
     fd_velocity_ratio, fd_acceleration_ratio : float
         max |Δq| / h / v_max and max |Δqd| / h / a_max over the intervals h between consecutive
         samples (mean velocity / acceleration over each interval: must not exceed the limits
@@ -108,7 +111,8 @@ class LimitReport(NamedTuple):
     worst : tuple (str, int, int)
         (quantity, sample index, joint index) of the largest ratio; for finite-difference
         quantities the sample index k refers to the step from sample k to k + 1 (for the jerk
-        without reported accelerations, to the intervals k -> k + 1 and k + 1 -> k + 2).
+        without reported accelerations, to the one-period interval that starts at sample k and
+        the next one).
     violations : int
         Samples at which some limit is exceeded (beyond the tolerances given to
         :func:`check_limits`): the sample's own position, velocity or acceleration, or a finite
@@ -148,8 +152,11 @@ def check_limits(q, qd, qdd, dt: float, limits: JointLimits, t=None, *, rtol: fl
     qdd : array, shape (T, d), or None
         Accelerations at the samples. None when the samples carry none (a sensor_msgs/JointState
         command stream): the mean acceleration of each interval, Δqd / h, is checked against
-        a_max, and the jerk is its change between consecutive intervals over the distance of
-        their midpoints, (h_k + h_(k+1)) / 2.
+        a_max, and the jerk is its change between consecutive intervals of one period (h = dt)
+        over the distance of their midpoints; across a gap, between the periods on either side
+        of it (a bound that holds whether the gap lost samples or the stream skipped ticks,
+        where one period of motion is stretched over a longer interval and that interval's
+        mean acceleration drops without any jerk in the commands).
     dt : float
         Sample period [s]; the sample times are k dt when ``t`` is None.
     limits : JointLimits
@@ -186,35 +193,44 @@ def check_limits(q, qd, qdd, dt: float, limits: JointLimits, t=None, *, rtol: fl
                              f"t[{k}] = {t[k]!r}")
     excess = np.maximum(np.maximum(limits.lower - q, q - limits.upper), 0.0)
     fd_acc = np.diff(qd, axis=0) / h                        # mean acceleration of each interval
+    steps = np.arange(1, n)                                 # the sample each interval ends at
     if qdd is None:
+        # the mean accelerations of consecutive one-period intervals, over the distance of their
+        # midpoints (across a gap: of the periods on either side of it)
+        period = np.flatnonzero(np.abs(h[:, 0] - dt) <= _PERIOD_RTOL * dt)
+        mid = (np.arange(n - 1) + 0.5) * dt if t is None else 0.5 * (t[:-1] + t[1:])
         acceleration = np.abs(fd_acc) / limits.max_acceleration
-        jerk = np.abs(np.diff(fd_acc, axis=0)) / (0.5 * (h[:-1] + h[1:])) / limits.max_jerk
+        jerk = np.abs(np.diff(fd_acc[period], axis=0)) / np.diff(mid[period])[:, None] / limits.max_jerk
+        jerk_at, jerk_ends = period[:-1], period[1:] + 1
+        acc_at = steps
     else:
         qdd = np.asarray(qdd, dtype=float)
         acceleration = np.abs(qdd) / limits.max_acceleration
         jerk = np.abs(np.diff(qdd, axis=0)) / h / limits.max_jerk
+        jerk_at, jerk_ends = steps - 1, steps
+        acc_at = np.arange(n)
+    # name -> (ratios (rows, d), the sample index each row is reported at, the sample it ends at)
     quantities = {
-        "velocity": np.abs(qd) / limits.max_velocity,
-        "acceleration": acceleration,
-        "jerk": jerk,
-        "fd_velocity": np.abs(np.diff(q, axis=0)) / h / limits.max_velocity,
-        "fd_acceleration": np.abs(fd_acc) / limits.max_acceleration,
+        "velocity": (np.abs(qd) / limits.max_velocity, np.arange(n), np.arange(n)),
+        "acceleration": (acceleration, acc_at - (qdd is None), acc_at),
+        "jerk": (jerk, jerk_at, jerk_ends),
+        "fd_velocity": (np.abs(np.diff(q, axis=0)) / h / limits.max_velocity, steps - 1, steps),
+        "fd_acceleration": (np.abs(fd_acc) / limits.max_acceleration, steps - 1, steps),
     }
     maxima = {}
     worst = ("none", 0, 0)
     worst_val = -1.0
     bad = (excess > position_tol).any(axis=1)
-    for name, r in quantities.items():
+    for name, (r, at, ends) in quantities.items():
         if r.size == 0:
             maxima[name] = 0.0
             continue
-        idx = np.unravel_index(int(np.argmax(r)), r.shape)
-        maxima[name] = float(r[idx])
-        if r[idx] > worst_val:
-            worst_val = float(r[idx])
-            worst = (name, int(idx[0]), int(idx[1]))
-        # the sample each row ends at: per-sample rows at 0, differences of samples (or of intervals) later
-        bad[n - r.shape[0]:] |= (r > 1 + rtol).any(axis=1)
+        row, joint = np.unravel_index(int(np.argmax(r)), r.shape)
+        maxima[name] = float(r[row, joint])
+        if r[row, joint] > worst_val:
+            worst_val = float(r[row, joint])
+            worst = (name, int(at[row]), int(joint))
+        bad[ends] |= (r > 1 + rtol).any(axis=1)
     return LimitReport(float(excess.max()), maxima["velocity"], maxima["acceleration"],
                        maxima["jerk"], maxima["fd_velocity"], maxima["fd_acceleration"], worst,
                        int(bad.sum()))
