@@ -71,10 +71,12 @@ class LoopSetup:
 
 @dataclasses.dataclass(frozen=True)
 class StartGoal:
-    """Execute ``plan`` as goal ``key``; it preempts the running goal."""
+    """Execute ``plan`` as goal ``key``; it preempts the running goal unless that one is newer
+    (``order``: the goal's acceptance order, see ExecutionGoal)."""
 
     key: int
     plan: ExecutionPlan
+    order: int | None = None
 
 
 @dataclasses.dataclass(frozen=True)

@@ -100,11 +100,16 @@ class Snapshot(NamedTuple):
 
 
 class ExecutionGoal:
-    """Shared between the action callback (waits, reads progress, requests cancel) and the loop."""
+    """Shared between the action callback (waits, reads progress, requests cancel) and the loop.
 
-    def __init__(self, plan: ExecutionPlan, goal_id: str = ""):
+    ``order``: the goal's place in the order the goals were accepted (larger = newer; None = not
+    ordered). A goal that reaches the loop while a newer one runs (its planning took longer) does not
+    preempt the newer one: it ends PREEMPTED without moving."""
+
+    def __init__(self, plan: ExecutionPlan, goal_id: str = "", order: int | None = None):
         self.plan = plan
         self.goal_id = goal_id
+        self.order = order
         self.done = threading.Event()
         self.outcome: Outcome | None = None
         self._progress = Progress(plan.start_phase, 0, 0.0, 0.0)  # of the sample published last
@@ -189,8 +194,14 @@ class ExecutionController:
 
     # ------------------------------------------------------------------ commands (loop thread)
     def start_goal(self, goal: ExecutionGoal, measured: MeasuredState | None) -> None:
-        """Take over ``goal``: splice onto the current stream, or start from the measured state."""
+        """Take over ``goal``: splice onto the current stream, or start from the measured state (a
+        goal accepted before the running one ends PREEMPTED at once, see :class:`ExecutionGoal`)."""
         finishes = []
+        if self.active is not None and goal.order is not None and self.active.goal.order is not None \
+                and goal.order < self.active.goal.order:
+            self._deliver_now([(goal, Outcome(Code.PREEMPTED, "preempted by a newer Execute goal, which started "
+                                              "first", 0.0, goal.plan.start_phase, 0))])
+            return
         if self.active is not None:
             old = self.active.goal
             finishes.append((old, Outcome(Code.PREEMPTED, "preempted by a newer Execute goal",

@@ -188,8 +188,11 @@ class ControlProcess:
                 return goal
             goal._link_key = key = next(self._keys)
             self._goals[key] = goal
-            self._latest = goal
-            self._send(StartGoal(key, goal.plan))
+            latest = self._latest
+            if latest is None or latest.done.is_set() or goal.order is None or latest.order is None \
+                    or goal.order > latest.order:  # an older goal does not take the newer one's place
+                self._latest = goal
+            self._send(StartGoal(key, goal.plan, goal.order))
         return goal
 
     def cancel(self, goal: ExecutionGoal) -> None:
@@ -242,8 +245,8 @@ class ControlProcess:
 class _LinkedGoal(ExecutionGoal):
     """A goal in the child: wakes the reporter when it finishes."""
 
-    def __init__(self, plan, key: int, wake: threading.Event):
-        super().__init__(plan, str(key))
+    def __init__(self, plan, key: int, wake: threading.Event, order: int | None = None):
+        super().__init__(plan, str(key), order)
         self.key = key
         self._wake = wake
 
@@ -316,7 +319,7 @@ def _child(fd: int, parent_pid: int) -> int:
             while True:
                 msg = conn.recv()
                 if isinstance(msg, StartGoal):
-                    goal = goals[msg.key] = _LinkedGoal(msg.plan, msg.key, wake)
+                    goal = goals[msg.key] = _LinkedGoal(msg.plan, msg.key, wake, msg.order)
                     loop.execute(goal)
                 elif isinstance(msg, CancelGoal):
                     if (goal := goals.get(msg.key)) is not None:

@@ -45,6 +45,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import collections  # noqa: E402
 import functools  # noqa: E402
+import itertools  # noqa: E402
 import math  # noqa: E402
 import pathlib  # noqa: E402
 import sys  # noqa: E402
@@ -148,8 +149,11 @@ class PrimitiveServer(Node):
                               (Sample, "sample", self._sample), (ListPrimitives, "list_primitives", self._list),
                               (SetPhaseRate, "set_phase_rate", self._set_rate)):
             create_service(srv, f"~/{name}", self._guard(name, fn))
+        # goals numbered as they are accepted: a newer goal preempts an older one, whichever plan is ready first
+        self._accepted, self._accept_order = itertools.count(1), {}
         self._action = ActionServer(self, Execute, "~/execute", self._execute, callback_group=ReentrantCallbackGroup(),
                                     goal_callback=lambda goal: GoalResponse.ACCEPT,
+                                    handle_accepted_callback=self._on_accepted,
                                     cancel_callback=lambda goal: CancelResponse.ACCEPT)
         if cfg.loop_mode == "timer":
             self.create_timer(1.0 / rate, self.loop.timer_tick, callback_group=MutuallyExclusiveCallbackGroup())
@@ -268,8 +272,13 @@ class PrimitiveServer(Node):
         res.message = f"phase rate set to {rate:g} /s (ramp {self.cfg.phase_rate_ramp_time:g} s)"
 
     # ------------------------------------------------------------------ action
+    def _on_accepted(self, goal_handle):
+        self._accept_order[bytes(goal_handle.goal_id.uuid)] = next(self._accepted)
+        goal_handle.execute()
+
     def _execute(self, goal_handle):
         g = goal_handle.request
+        order = self._accept_order.pop(bytes(goal_handle.goal_id.uuid), None)
         result = Execute.Result()
         try:
             plan = self.core.plan_execution(ExecuteRequest(g.handle, g.duration, g.phase_rate, g.cycles, g.reverse))
@@ -279,7 +288,7 @@ class PrimitiveServer(Node):
                     f"no joint_states on '{self.cfg.joint_states_topic}' for {age:.3f} s" if math.isfinite(age)
                     else f"no joint_states received on '{self.cfg.joint_states_topic}'")
                     + f" (stale_timeout {self.cfg.stale_timeout:g} s); is the robot running?")
-            goal = self.loop.execute(ExecutionGoal(plan, str(bytes(goal_handle.goal_id.uuid).hex())))
+            goal = self.loop.execute(ExecutionGoal(plan, str(bytes(goal_handle.goal_id.uuid).hex()), order))
             period, canceled = 1.0 / self.cfg.feedback_rate_hz, False
             while not goal.done.wait(period):
                 if goal_handle.is_cancel_requested and not canceled:
