@@ -4,7 +4,8 @@ no rclpy).
 :class:`ExecutionController` keeps a look-ahead buffer of command samples (robot joint order).
 Every control tick the loop (:class:`~deepprompt_ros.execution.stream_loop.StreamLoop`) pops the
 sample due now (:meth:`~ExecutionController.pop_due`), applies the commands of other threads
-(:meth:`~ExecutionController.start_goal`: a new goal splices onto the stream,
+(:meth:`~ExecutionController.start_goal`: a new goal splices onto the stream and preempts the
+running goal, or ends a braking one for the reason it brakes,
 :meth:`~ExecutionController.cancel`: brake, :meth:`~ExecutionController.set_rate`), checks
 joint-state staleness and the tracking-error bound (:meth:`~ExecutionController.check_faults`),
 and computes ONE new sample ``lookahead_ticks`` periods ahead
@@ -203,10 +204,14 @@ class ExecutionController:
                                               "first", 0.0, goal.plan.start_phase, 0))])
             return
         if self.active is not None:
-            old = self.active.goal
-            finishes.append((old, Outcome(Code.PREEMPTED, "preempted by a newer Execute goal",
-                                          old.max_tracking_error, self.active.clock.x,
-                                          self.active.clock.sample.cycle)))
+            a, old = self.active, self.active.goal
+            if a.stage == Stage.STOPPING and a.stop_reason is not None:
+                # braking already (canceled, stale state, tracking error): it ends for that reason
+                code, msg = a.stop_reason
+                msg = f"{msg}; a newer Execute goal took over while braking (phase {a.clock.x:.4f})"
+            else:
+                code, msg = Code.PREEMPTED, "preempted by a newer Execute goal"
+            finishes.append((old, Outcome(code, msg, old.max_tracking_error, a.clock.x, a.clock.sample.cycle)))
             self.active = None
         if self.buffer or (self.streamer.started and not self.streamer.at_rest()):
             # splice: continue from the last computed sample (position, velocity, acceleration)
