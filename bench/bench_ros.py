@@ -1,12 +1,13 @@
 """Benchmark of primitive_server over real DDS, every party in its own process.
 
-    python bench/bench_ros.py            # full: per mode 40 s stream, >= 1000 Condition calls, 30 random executions
-    python bench/bench_ros.py --quick    # smoke run: per mode 2 s stream, 20 calls, limits checked on that stream
+    python bench/bench_ros.py            # full: per mode 40 s stream, >= 1000 Condition calls, then random
+                                         # executions (1000 with the fast path, 100 with plain rclpy)
+    python bench/bench_ros.py --quick    # smoke run: per mode 2 s stream, 20 calls, 20 random executions
     python bench/bench_ros.py --sim-param joint_states_rate_hz:=250 --param gil_switch_interval:=0.0005
 
 Processes: sim_bridge (PyBullet Gen3 lite, joint_states at 1 kHz), primitive_server (and, with
-its default ``loop_process: true``, its control-loop child process), a stream subscriber, a
-Condition client, and this orchestrator (action client).
+its default ``loop_process: true``, its control-loop child process), two stream subscribers, a
+service client, a bare reference loop, and this orchestrator (action client).
 
 Both modes of the server are measured in one run, one after the other against the same simulated
 robot: ``fast_path: true`` (the default; the figures below without suffix) and ``fast_path: false``
@@ -14,50 +15,66 @@ robot: ``fast_path: true`` (the default; the figures below without suffix) and `
 ratio of the two for the service round trip and the stream's period error (< 1: the fast path is
 better), so the fast path has to keep earning its place.
 
-Metrics (last line: space-separated name=value pairs; the fast path's headline figures, the plain
-ones and the ratios):
+The machine's own floor is measured in the same run, beside the figures it bounds: a near-empty
+service (ListPrimitives) called by the same client between the Condition calls, and a bare
+real-time loop running beside the stream. The ``*_ratio`` figures compare the server with it.
+
+Metrics (last line: space-separated name=value pairs; the headline figures of both modes and the
+ratios):
 
 * ``srv_p50_ms``, ``srv_p99_ms`` -- Condition round trip (request with 5 via-points and the
   'object' context, preview 100 points) measured by the client process, which calls every 40 ms
   (25 calls/s) while the stream runs: from just before sending to the response taken (the client
   waits on an rcl wait set of its own, see role_client);
-* ``--service list_primitives``: the client calls ListPrimitives instead (a handler that does next to
-  nothing): ``srv_*`` is then the transport's share of a round trip under the same load (``srv_service``
-  says which was called);
-* ``--reference-loop``: ``ref_loop_period_p99_err_ms``, ``ref_loop_missed`` (of ``ref_loop_intervals``)
-  -- the same two figures for a bare 1 kHz Python loop (no ROS, no work, paced like the server's control
-  thread, SCHED_FIFO at ``--subscriber-priority``) run in its own process during the stream: the
-  machine's own floor for a real-time loop under this load;
+* ``srv_list_p50_ms``, ``srv_list_p99_ms`` -- the same client's ListPrimitives round trip, called
+  half-way between two Condition calls (a handler that does next to nothing: the transport's and
+  the server's dispatch share of a round trip under the same load);
+  ``srv_floor_ratio`` = srv_p50_ms / srv_list_p50_ms (target <= 1.5);
 * ``srv_handler_p50_ms``, ``srv_handler_p99_ms`` -- time inside the server's Condition callback
   (its log): the computation, without transport and executor dispatch;
 * ``stream_hz`` -- joint_command messages received per second by the subscriber during one long
   Execute goal (arrival = the instant the subscriber process's DDS layer received the message,
   see role_subscriber: the Python measuring code neither delays nor loads the stream). The
-  subscriber runs as a real-time consumer (a controller) would: SCHED_FIFO ``--subscriber-priority``
+  subscribers run as a real-time consumer (a controller) would: SCHED_FIFO ``--subscriber-priority``
   (default 50; 0 = normal scheduling); ``subscriber_fifo_priority`` says what it got (0 if refused);
 * ``stream_period_p99_err_ms`` -- p99 over inter-arrival intervals of |interval - dt| (dt = 1 ms);
 * ``stream_missed`` -- intervals longer than 1.5 dt (each is a command that arrived at least half a
   period late or not at all); ``stream_lost`` -- gaps in the commands' header.stamp (the nominal
   time of the tick, k dt): commands lost on the way plus the periods the server skipped after a tick
   that started more than a period late (its deadlines then restart from now, see execution.stream_loop);
+* ``ref_loop_period_p99_err_ms``, ``ref_loop_missed`` (of ``ref_loop_intervals``) -- the same two
+  figures for a bare 1 kHz Python loop (no ROS, no work, paced like the server's control thread,
+  SCHED_FIFO at ``--subscriber-priority``) run in its own process during the stream: the machine's
+  own floor for a real-time loop under this load; ``stream_missed_ratio`` = (stream_missed + 1) /
+  (ref_loop_missed + 1) and ``stream_p99_ratio`` = stream_period_p99_err_ms /
+  ref_loop_period_p99_err_ms (targets <= 1.5);
 * ``server_period_p99_err_ms``, ``server_missed`` -- the same two figures from the server's own
   publication instants (its log): pacing alone, without transport and subscriber scheduling;
 * ``cpu_<process>_pct`` -- CPU time of each process (user + system, /proc) per wall-clock second
-  while the stream and the Condition client ran, in % of one core (the machine has os.cpu_count());
+  while the stream and the client ran, in % of one core (the machine has os.cpu_count());
   ``cpu_control_pct`` is the server's control-loop child process (``loop_process: true``);
 * ``server_gc_count``, ``server_gc_max_ms`` -- cyclic garbage collections in the server and the
   longest (each holds the interpreter lock);
-* ``limit_violations`` -- over random executions in the sim (random via-points, durations,
-  preemptions, cancels, phase-rate changes): commanded samples violating a limit
-  (execution.limits.check_limits on the joint_command stream: positions, velocities, and the
-  finite-difference accelerations / jerks of consecutive commands; segments split at lost
-  messages) plus measured joint_states samples outside the URDF position limits by > 1e-4 rad.
+* ``executions``, ``executions_ok``, ``executions_expected_refused`` -- phase 2's random executions
+  (see SCENARIOS and random_executions): goals sent, goals that ended with the result their scenario
+  expects (SUCCESS, CANCELED or PREEMPTED), and goals sent to be refused (too fast for the velocity
+  limits; ``executions_refused_ok`` of them were, with LIMIT_VIOLATION). executions_ok =
+  executions - executions_expected_refused when every execution ended as expected
+  (``exec_unexpected`` lists the others by scenario and code);
+* ``limit_violations`` -- every joint_command of both phases checked against the limits, each
+  against the one received before it, across gaps too (limit_check: positions, velocities,
+  accelerations and jerks from consecutive commands, a gap of k periods allowing k periods of
+  motion), plus measured joint_states samples outside the URDF position limits by > 1e-4 rad;
+  ``start_jumps`` are the violations where a stream starts again after it stopped at rest;
+* ``max_jump_ratio`` -- largest |Δq| / (v_max Δt) over consecutive commands (Δt from their stamps;
+  target <= 1).
 
 Length: over 400 lines because the script starts itself again for each measuring role
 (``--role subscriber | client | reference_loop``, each in its own process): the orchestrator, the
-roles and the figures computed from their recordings share its command line and constants, and
-``python bench/bench_ros.py`` stays the one thing to run. The rclpy internals it relies on are in
-:mod:`deepprompt_ros.ros.fastpath` (``polled.take_all``, ``service_client.BlockingClient``).
+roles, phase 2's scenarios and the figures computed from their recordings share its command line
+and constants, and ``python bench/bench_ros.py`` stays the one thing to run. The rclpy internals
+it relies on are in :mod:`deepprompt_ros.ros.fastpath` (``polled.take_all``,
+``service_client.BlockingClient``).
 """
 from __future__ import annotations
 
@@ -235,14 +252,16 @@ def role_subscriber(out: str, gate: str, states: bool, priority: int = 0) -> Non
     rclpy.try_shutdown()
 
 
-def _condition_request(rng, home):
+def _condition_request(rng, home, n_via: int = 5):
+    """Condition 'reach' on ``n_via`` random via-points near ``home`` (N(0, 0.05) rad per joint, phases
+    U(0, 1)) and a random 'object' context U(-0.3, 0.3)³; a 100-point preview."""
     from deepprompt_msgs.msg import Context
     from deepprompt_msgs.srv import Condition
 
     from deepprompt_ros.ros import conversions as conv
 
-    x = np.sort(rng.uniform(0, 1, 5))
-    y = home + rng.normal(0, 0.05, (5, 6))
+    x = np.sort(rng.uniform(0, 1, n_via))
+    y = home + rng.normal(0, 0.05, (n_via, 6))
     return Condition.Request(primitive="reach", via_points=conv.via_points_to_msgs(x, y),
                              contexts=[Context(modality="object", values=rng.uniform(-0.3, 0.3, 3).tolist())],
                              preview_points=100)
@@ -251,13 +270,16 @@ def _condition_request(rng, home):
 CALL_PERIOD = 0.04  # s between the starts of two Condition calls (25 calls/s, a busy planner)
 
 
-def role_client(out: str, gate: str, seconds: float, min_calls: int, service: str = "condition") -> None:
-    """From the file <gate>.go on, call Condition (``service`` "list_primitives": ListPrimitives, whose
-    handler does next to nothing — the transport's share under the same load) every CALL_PERIOD s (back
-    to back when a call takes longer) for ``seconds`` and at least ``min_calls`` calls; record round trips.
+def role_client(out: str, gate: str, seconds: float, min_calls: int) -> None:
+    """From the file <gate>.go on, call Condition every CALL_PERIOD s and, half a period after each,
+    ListPrimitives (a handler that does next to nothing: the transport's and the server's dispatch
+    share of a round trip), for ``seconds`` and at least ``min_calls`` Condition calls (back to back
+    when calls take longer); record the round trips of both.
 
-    Round trip: from just before the request is sent to the moment its response has been taken in
-    this process. The client waits on its own rcl wait set (what an rclpy executor does inside, without
+    Interleaved, the two services see the same machine and the same load at the same time, so
+    the ratio of their round trips says how much of a Condition call is the handler's own. Round
+    trip: from just before the request is sent to the moment its response has been taken in this
+    process. The client waits on its own rcl wait set (what an rclpy executor does inside, without
     the executor's per-wake bookkeeping; see ros.fastpath.service_client) and sleeps between calls.
     """
     from deepprompt_msgs.srv import Condition, ListPrimitives
@@ -266,27 +288,32 @@ def role_client(out: str, gate: str, seconds: float, min_calls: int, service: st
     from deepprompt_ros.ros.fastpath.service_client import BlockingClient
 
     rclpy, node, _ = _role_node("bench_condition_client")  # its executor is never spun: the client waits itself
-    srv_type = ListPrimitives if service == "list_primitives" else Condition
-    cli = BlockingClient(node, srv_type, f"{SERVER}/{service}")
-    cli.wait_for_service(timeout=60)
+    clients = {name: BlockingClient(node, srv_type, f"{SERVER}/{name}")
+               for name, srv_type in (("condition", Condition), ("list_primitives", ListPrimitives))}
+    for cli in clients.values():
+        cli.wait_for_service(timeout=60)
     home = load_robot("gen3_lite").home
 
     pathlib.Path(gate + ".ready").write_text("ready")
     _wait_file(pathlib.Path(gate + ".go"))
     rng = np.random.default_rng(1)
-    rtt, fails = [], 0
+    rtt = {name: [] for name in clients}
+    fails = {name: 0 for name in clients}
     end = time.monotonic() + seconds
     next_call = time.monotonic()
-    while time.monotonic() < end or len(rtt) < min_calls:
-        req = _condition_request(rng, home) if srv_type is Condition else ListPrimitives.Request()
-        time.sleep(max(0.0, next_call - time.monotonic()))
-        next_call += CALL_PERIOD
-        t0 = time.perf_counter()
-        res = cli.call(req)
-        rtt.append(time.perf_counter() - t0)
-        fails += not res.success
-    _save(out, rtt=np.array(rtt), fails=fails)
-    cli.destroy()
+    while time.monotonic() < end or len(rtt["condition"]) < min_calls:
+        for name, cli in clients.items():
+            req = _condition_request(rng, home) if name == "condition" else ListPrimitives.Request()
+            time.sleep(max(0.0, next_call - time.monotonic()))
+            next_call += CALL_PERIOD / 2
+            t0 = time.perf_counter()
+            res = cli.call(req)
+            rtt[name].append(time.perf_counter() - t0)
+            fails[name] += not res.success
+    _save(out, rtt=np.array(rtt["condition"]), fails=fails["condition"], rtt_list=np.array(rtt["list_primitives"]),
+          fails_list=fails["list_primitives"])
+    for cli in clients.values():
+        cli.destroy()
     node.destroy_node()
     rclpy.try_shutdown()
 
@@ -295,6 +322,9 @@ def role_client(out: str, gate: str, seconds: float, min_calls: int, service: st
 # orchestrator
 # ------------------------------------------------------------------------------------------------
 class Orchestrator:
+    """The benchmark's own client: Condition, Blend, SetPhaseRate and the Execute action (an
+    rclpy executor spun in this thread)."""
+
     def __init__(self, env):
         from rclpy.action import ActionClient
 
@@ -312,27 +342,27 @@ class Orchestrator:
 
         return self.c.call(Condition, f"{SERVER}/condition", req)
 
+    def blend(self, handle_a, handle_b, phases=(), weights=()):
+        from deepprompt_msgs.srv import Blend
+
+        return self.c.call(Blend, f"{SERVER}/blend", Blend.Request(
+            handle_a=handle_a, handle_b=handle_b, schedule_phases=list(phases), schedule_weights=list(weights),
+            preview_points=100))
+
     def set_rate(self, rate):
         from deepprompt_msgs.srv import SetPhaseRate
 
         return self.c.call(SetPhaseRate, f"{SERVER}/set_phase_rate", SetPhaseRate.Request(phase_rate=rate))
 
-    def send(self, handle, duration):
-        """Send a goal; if the server refuses the duration as too fast for the velocity limits
-        (LIMIT_VIOLATION "use a duration >= T s"), send it again with 1.2 T."""
-        for _ in range(2):
-            fut = self.ac.send_goal_async(self.Execute.Goal(handle=handle, duration=duration))
-            self.c.wait_for(fut.done, 10)
-            gh = fut.result()
-            res = gh.get_result_async()
-            self.c.wait_for(res.done, 0.3)
-            if res.done():
-                m = re.search(r"use a duration >= ([\d.e+-]+) s", res.result().result.message)
-                if m:
-                    duration = 1.2 * float(m[1])
-                    continue
-            break
-        return gh, res
+    def send(self, handle, duration, reverse=False, feedback=None):
+        """Send a goal (accepted by the server, which ends a refused one at once with its code);
+        returns (goal handle, result future)."""
+        fut = self.ac.send_goal_async(self.Execute.Goal(handle=handle, duration=duration, reverse=reverse),
+                                      feedback_callback=feedback)
+        if not self.c.wait_for(fut.done, 10):
+            raise RuntimeError("the Execute goal was not answered within 10 s")
+        gh = fut.result()
+        return gh, gh.get_result_async()
 
     def wait(self, res_fut, timeout):
         self.c.wait_for(res_fut.done, timeout)
@@ -341,6 +371,144 @@ class Orchestrator:
     def close(self):
         self.ac.destroy()
         self.c.close()
+
+
+# ------------------------------------------------------------------------------------------------
+# phase 2: random executions
+# ------------------------------------------------------------------------------------------------
+#: scenario of a random execution -> probability. What each does and the result it expects:
+#: finish / reverse -- run to the end (reverse: phase 1 -> 0): SUCCESS;
+#: cancel -- canceled 0.05-0.4 s after it was sent (at most half its duration): CANCELED;
+#: preempt -- the next execution's goal is sent 0.05-0.4 s after it (at most half its duration): PREEMPTED;
+#: rate -- once moving, SetPhaseRate to a random rate (negative: a reversal; the server refuses one
+#:   too fast for the velocity limits and the goal keeps its rate), then canceled (CANCELED, 7 in 10) or given
+#:   back its own rate and run to the end (SUCCESS); the waits keep the phase below about 0.6 before
+#:   the last request, so the goal still runs when it arrives;
+#: too_fast -- a duration half the shortest the velocity limits allow: refused, LIMIT_VIOLATION (the
+#:   one scenario expected to fail; the running goal, if any, is not affected).
+SCENARIOS = {"finish": 0.04, "reverse": 0.02, "cancel": 0.35, "preempt": 0.4, "rate": 0.14, "too_fast": 0.05}
+
+
+def _min_duration(preview_mean, preview_phases, v_max) -> float:
+    """Shortest duration at which the previewed mean keeps the velocity limits (finite differences of
+    the preview; the server's own check on its finer grid asks up to a few % more)."""
+    speed = np.abs(np.diff(preview_mean, axis=0)) / np.diff(preview_phases)[:, None]
+    return float((speed / v_max).max())
+
+
+class _Execution:
+    """One goal of phase 2: its scenario, expected result code and latest feedback."""
+
+    def __init__(self, kind: str, expected: int, duration: float):
+        self.kind, self.expected, self.duration = kind, expected, duration
+        self.phase = None   # latest feedback phase (None before the first)
+        self.gh = self.fut = None
+
+    def feedback(self, msg) -> None:
+        self.phase = float(msg.feedback.phase)
+
+    def moving(self) -> bool:
+        """The phase clock has left its start (the approach to the primitive's start is over)."""
+        start = 1.0 if self.kind == "reverse" else 0.0
+        return self.phase is not None and abs(self.phase - start) > 1e-9
+
+
+def random_executions(orch, rng, n: int, home, v_max) -> dict:
+    """``n`` random executions, one after the other (a preempting goal is the next execution), each
+    conditioned on 1-5 random via-points and a random context, a quarter of them blended with the
+    previous handle (Blend, linear hand-over); scenarios from SCENARIOS. Returns the figures:
+    executions, executions_ok (ended with the code their scenario expects, SUCCESS / CANCELED /
+    PREEMPTED), executions_expected_refused (too_fast), executions_refused_ok (of those, refused
+    with LIMIT_VIOLATION), exec_unexpected (scenario:code counts of the others), exec_codes (all
+    result codes), set_rate_codes (SetPhaseRate responses), exec_wall_s."""
+    from deepprompt_msgs.msg import ResultCode as RC
+
+    kinds, probs = list(SCENARIOS), np.array(list(SCENARIOS.values()))
+    expect = {"finish": RC.SUCCESS, "reverse": RC.SUCCESS, "cancel": RC.CANCELED, "preempt": RC.PREEMPTED,
+              "too_fast": RC.LIMIT_VIOLATION}
+    done, codes, rate_codes = [], {}, {}
+    last_handle, preempted = None, None
+    t0 = time.monotonic()
+
+    def count(table, key):
+        table[key] = table.get(key, 0) + 1
+
+    def spin(seconds):
+        orch.c.spin_for(seconds)
+
+    def finish(ex, timeout):
+        res = orch.wait(ex.fut, timeout)
+        ex.code = int(res.code.value) if res is not None else -1
+        done.append(ex)
+
+    for i in range(n):
+        kind = str(rng.choice(kinds, p=probs / probs.sum()))
+        if kind == "too_fast" and preempted is not None:
+            kind = "finish"  # a refused goal would not preempt the running one
+        if kind == "preempt" and i == n - 1:
+            kind = "cancel"  # the last execution has no successor
+        r = orch.condition(_condition_request(rng, home, int(rng.integers(1, 6))))
+        if not r.success:
+            raise RuntimeError(f"Condition failed: {r.message}")
+        handle, preview = r.handle, r.preview
+        if last_handle is not None and rng.random() < 0.25:
+            b = orch.blend(r.handle, last_handle)
+            if not b.success:
+                raise RuntimeError(f"Blend failed: {b.message}")
+            handle, preview = b.handle, b.preview
+        last_handle = r.handle
+        mean = np.array(preview.mean, dtype=float).reshape(preview.n_points, -1)
+        t_min = _min_duration(mean, np.array(preview.phases), v_max)
+        duration = 0.5 * t_min if kind == "too_fast" else t_min * float(rng.uniform(1.3, 1.6))
+        ex = _Execution(kind, expect.get(kind, RC.SUCCESS), duration)
+        ex.gh, ex.fut = orch.send(handle, duration, reverse=kind == "reverse", feedback=ex.feedback)
+        if preempted is not None:  # its result (PREEMPTED) is collected at the end
+            done.append(preempted)
+            preempted = None
+        if kind == "too_fast":
+            finish(ex, 10.0)
+        elif kind in ("finish", "reverse"):
+            finish(ex, 3 * duration + 20.0)
+        elif kind in ("cancel", "preempt"):
+            spin(min(float(rng.uniform(0.05, 0.4)), 0.5 * duration))
+            if kind == "preempt":
+                preempted = ex
+                continue
+            ex.gh.cancel_goal_async()
+            finish(ex, 20.0)
+        else:  # rate
+            orch.c.wait_for(ex.moving, 20.0)
+            spin(min(float(rng.uniform(0.05, 0.2)), 0.2 * duration))
+            res = orch.set_rate(float(rng.uniform(-1.5, 1.5)) / duration)
+            count(rate_codes, str(res.code.value))
+            spin(min(float(rng.uniform(0.05, 0.2)), 0.2 * duration))
+            if rng.random() < 0.7:
+                ex.expected = RC.CANCELED
+                ex.gh.cancel_goal_async()
+                finish(ex, 20.0)
+            else:
+                res = orch.set_rate(1.0 / duration)
+                count(rate_codes, str(res.code.value))
+                finish(ex, 3 * duration + 20.0)
+    for ex in done:
+        if ex.kind == "preempt":  # ended when its successor started
+            res = orch.wait(ex.fut, 10.0)
+            ex.code = int(res.code.value) if res is not None else -1
+    for ex in done:
+        count(codes, str(ex.code))
+    refused = [ex for ex in done if ex.kind == "too_fast"]
+    ok = [ex for ex in done if ex.kind != "too_fast" and ex.code == ex.expected]
+    refused_ok = [ex for ex in refused if ex.code == ex.expected]
+    unexpected = {}
+    for ex in done:
+        if ex.code != ex.expected:
+            count(unexpected, f"{ex.kind}:{ex.code}")
+    return dict(executions=len(done), executions_ok=len(ok), executions_expected_refused=len(refused),
+                executions_refused_ok=len(refused_ok), executions_unexpected=len(done) - len(ok) - len(refused_ok),
+                exec_unexpected=json.dumps(unexpected, sort_keys=True).replace(" ", ""),
+                exec_codes=json.dumps(codes, sort_keys=True).replace(" ", ""),
+                set_rate_codes=json.dumps(rate_codes, sort_keys=True).replace(" ", ""),
+                exec_wall_s=time.monotonic() - t0)
 
 
 class _Pid:
@@ -406,51 +574,77 @@ def stream_metrics(data, dt):
                 stream_lost=int(np.maximum(steps - 1, 0).sum()), stream_interval_max_ms=longest)
 
 
-def limit_check(data, dt, limits):
-    """Violations in the commanded stream (segments between lost messages) and measured states."""
+def limit_check(data, dt, limits, measured: bool = True) -> dict:
+    """Limits of a recorded joint_command stream, every command against the one received before
+    it, across gaps too (execution.limits.check_limits with the commands' stamps as sample times:
+    a gap of k periods -- between executions, or where commands were lost or the control loop
+    skipped ticks -- allows k dt v_max of motion), and, if ``measured``, the recorded joint_states
+    against the URDF position limits (1e-4 rad).
+
+    The time between two commands is their stamps' difference in whole periods (at least one):
+    the stamps are the ticks' nominal times, k dt apart when k - 1 commands were lost, and more than
+    two periods apart after a tick that started late (one period of motion then); rounding down
+    allows no more motion than the stamps do. A stamp not after the one before is a violation too
+    (that command is left out of the check).
+
+    Returns violations (commanded samples beyond a limit + disordered stamps), the measured ones,
+    the commands checked, max_jump_ratio (largest |Δq| / (v_max Δt) between consecutive commands),
+    start_jumps (of the violations, commands that start a stream again after it stopped at rest --
+    both at zero velocity, more than one period apart -- farther from the last command than the
+    velocity limits allow in between) with the largest such jump, and the report's other ratios."""
     from deepprompt_ros.execution.limits import check_limits
 
     q, qd, stamp = data["q"], data["qd"], data["stamp"]
-    viol, worst = 0, {}
-    if q.shape[0] > 2:
-        steps = np.round(np.diff(stamp) / (dt * 1e9)).astype(int)
-        cuts = np.flatnonzero(steps != 1) + 1
-        for seg in np.split(np.arange(q.shape[0]), cuts):
-            if seg.size < 4:
-                continue
-            # qdd of sample k: (qd[k] - qd[k-1]) / dt, the mean acceleration over the period before it
-            qs, vs = q[seg][1:], qd[seg][1:]
-            acc = np.diff(qd[seg], axis=0) / dt
-            rep = check_limits(qs, vs, acc, dt, limits)
-            # per-sample counts (the report gives maxima): positions, velocities, accelerations, jerks
-            bad = ((qs < limits.lower - 1e-9) | (qs > limits.upper + 1e-9)).any(1)
-            bad |= (np.abs(vs) > limits.max_velocity * (1 + 1e-6)).any(1)
-            bad |= (np.abs(acc) > limits.max_acceleration * (1 + 1e-6)).any(1)
-            bad[1:] |= (np.abs(np.diff(acc, axis=0)) / dt > limits.max_jerk * (1 + 1e-6)).any(1)
-            viol += int(bad.sum())
-            for k in ("velocity_ratio", "fd_acceleration_ratio", "jerk_ratio", "position_excess"):
-                worst[k] = max(worst.get(k, 0.0), float(getattr(rep, k)))
-    js = data["js"]
-    excess = np.maximum(np.maximum(limits.lower - js, js - limits.upper), 0.0).max(1) if js.size else np.zeros(0)
-    js_viol = int((excess > 1e-4).sum())
-    worst["measured_position_excess"] = float(excess.max()) if excess.size else 0.0
-    return viol, js_viol, worst
+    out = dict(commands=int(q.shape[0]), violations=0, max_jump_ratio=0.0, start_jumps=0, start_jump_max_rad=0.0,
+               velocity_ratio=0.0, fd_acceleration_ratio=0.0, jerk_ratio=0.0, position_excess=0.0)
+    if q.shape[0] >= 2:
+        keep = np.r_[True, stamp[1:] > np.maximum.accumulate(stamp)[:-1]]
+        q, qd, stamp = q[keep], qd[keep], stamp[keep]
+        periods = np.maximum(np.round(np.diff(stamp) / (dt * 1e9)), 1.0)
+        t = np.r_[0.0, np.cumsum(periods)] * dt
+        rep = check_limits(q, qd, None, dt, limits, t=t)
+        jump = np.abs(np.diff(q, axis=0)) / (periods[:, None] * dt) / limits.max_velocity
+        start = (periods > 1) & ~qd[:-1].any(1) & ~qd[1:].any(1)
+        bad_start = start & (jump > 1 + 1e-6).any(1)
+        out.update(violations=rep.violations + int((~keep).sum()), max_jump_ratio=rep.fd_velocity_ratio,
+                   start_jumps=int(bad_start.sum()),
+                   start_jump_max_rad=float(np.abs(np.diff(q, axis=0))[bad_start].max()) if bad_start.any() else 0.0,
+                   velocity_ratio=rep.velocity_ratio, fd_acceleration_ratio=rep.fd_acceleration_ratio,
+                   jerk_ratio=rep.jerk_ratio, position_excess=rep.position_excess)
+    if measured:
+        js = data["js"]
+        excess = np.maximum(np.maximum(limits.lower - js, js - limits.upper), 0.0).max(1) if js.size else np.zeros(0)
+        out.update(measured_violations=int((excess > 1e-4).sum()),
+                   measured_position_excess=float(excess.max()) if excess.size else 0.0)
+    return out
 
 
 #: the figures printed for both modes and compared as fast path / plain rclpy (last line)
 COMPARED = ("srv_p50_ms", "srv_p99_ms", "stream_period_p99_err_ms")
 
 
+def floor_ratios(m: dict) -> dict:
+    """The figures as fractions of the machine's floor measured beside them (targets <= 1.5):
+    srv_floor_ratio = Condition p50 / ListPrimitives p50 (same client, interleaved);
+    stream_missed_ratio = (stream missed + 1) / (reference loop missed + 1);
+    stream_p99_ratio = stream p99 period error / the reference loop's."""
+    ref = m["ref_loop_period_p99_err_ms"]
+    return dict(srv_floor_ratio=m["srv_p50_ms"] / m["srv_list_p50_ms"] if m["srv_list_p50_ms"] > 0 else float("nan"),
+                stream_missed_ratio=(m["stream_missed"] + 1) / (m["ref_loop_missed"] + 1),
+                stream_p99_ratio=m["stream_period_p99_err_ms"] / ref if ref > 0 else float("nan"))
+
+
 def measure(args, env, tmp: pathlib.Path, prim_file: pathlib.Path, spec, limits, fast_path: bool,
             procs: list) -> dict:
     """One primitive_server (``fast_path`` as given) measured against the running sim_bridge: phase 1
-    (one long execution with the stream subscriber and the Condition client, each in its own process)
-    and phase 2 (random executions, limits). Every process started here is appended to ``procs``
-    and stopped before returning."""
+    (one long execution; the stream subscriber, the Condition / ListPrimitives client and the
+    reference loop, each in its own process) and phase 2 (random executions, limits). Every process
+    started here is appended to ``procs`` and stopped before returning."""
     from deepprompt_ros.ros.testing import NodeProcess
 
     dt = 1.0 / spec.control_rate_hz
-    stream_s, calls, n_exec = (2.0, 20, 0) if args.quick else (40.0, 1000, 30)
+    stream_s, calls = (2.0, 20) if args.quick else (40.0, 1000)
+    n_exec = args.executions if fast_path else args.executions_plain
     mode = "fast" if fast_path else "plain"
     tmp = tmp / mode
     tmp.mkdir()
@@ -483,15 +677,12 @@ def measure(args, env, tmp: pathlib.Path, prim_file: pathlib.Path, spec, limits,
             pathlib.Path(f"{gate}.{what}").write_text(what)
 
         # measuring processes start now, in parallel with the server
-        g_sub, g_cli, g_sub2 = tmp / "stream", tmp / "client", tmp / "limits"
-        # quick: no random executions; the limits are checked on the phase-1 stream (+ joint states)
+        g_sub, g_cli, g_sub2, g_ref = tmp / "stream", tmp / "client", tmp / "limits", tmp / "reference"
         prio = ["--priority", str(args.subscriber_priority)]
-        sub = start_role("subscriber", tmp / "stream.npz", g_sub, (["--states"] if args.quick else []) + prio)
-        cli = start_role("client", tmp / "client.npz", g_cli, ["--seconds", str(stream_s), "--calls", str(calls),
-                                                               "--service", args.service])
-        sub2 = None if args.quick else start_role("subscriber", tmp / "limits.npz", g_sub2, ["--states"] + prio)
-        g_ref = tmp / "reference"
-        ref = start_role("reference_loop", tmp / "reference.npz", g_ref, prio) if args.reference_loop else None
+        sub = start_role("subscriber", tmp / "stream.npz", g_sub, prio)
+        cli = start_role("client", tmp / "client.npz", g_cli, ["--seconds", str(stream_s), "--calls", str(calls)])
+        sub2 = start_role("subscriber", tmp / "limits.npz", g_sub2, ["--states"] + prio)
+        ref = start_role("reference_loop", tmp / "reference.npz", g_ref, prio)
         orch = Orchestrator(env)
         end = time.monotonic() + 60
         while "receiving joint_states" not in server.output():
@@ -499,18 +690,17 @@ def measure(args, env, tmp: pathlib.Path, prim_file: pathlib.Path, spec, limits,
                 raise RuntimeError("primitive_server receives no joint_states:\n" + server.output_tail())
             time.sleep(0.1)
 
-        # ---- phase 1: one long execution; subscriber + Condition client in their own processes
-        for g in (g_sub, g_cli) + (() if sub2 is None else (g_sub2,)) + (() if ref is None else (g_ref,)):
+        # ---- phase 1: one long execution; subscriber, client and reference loop in their own processes
+        for g in (g_sub, g_cli, g_sub2, g_ref):
             wait_ready(g)
         rng = np.random.default_rng(0)
         r = orch.condition(_condition_request(rng, spec.home))
         assert r.success, r.message
         go(g_sub)
-        if ref is not None:
-            go(g_ref)
+        go(g_ref)
         gh, res_fut = orch.send(r.handle, stream_s + 1.5)
         orch.c.spin_for(0.5)
-        roles = {"sim_bridge": procs[0], "server": server, "subscriber": sub, "client": cli}
+        roles = {"sim_bridge": procs[0], "server": server, "subscriber": sub, "client": cli, "reference_loop": ref}
         child = re.findall(r"control loop running in its own process \(pid (\d+)\)", server.output())
         if child:  # loop_process: the control loop's own process (cpu_server_pct is then the rest)
             roles["control"] = _Pid(int(child[-1]))
@@ -526,11 +716,10 @@ def measure(args, env, tmp: pathlib.Path, prim_file: pathlib.Path, spec, limits,
             gh.cancel_goal_async()
         res = orch.wait(res_fut, stream_s + 30)
         go(g_sub, "stop")
+        go(g_ref, "stop")
         stream = _load(tmp / "stream.npz", sub, 60)
         metrics = stream_metrics(stream, dt)
-        if ref is not None:
-            go(g_ref, "stop")
-            metrics.update(reference_loop_metrics(_load(tmp / "reference.npz", ref, 60), dt))
+        metrics.update(reference_loop_metrics(_load(tmp / "reference.npz", ref, 60), dt))
         # the subscriber's scheduling as it ran (a refused SCHED_FIFO leaves it at normal priority)
         metrics["subscriber_fifo_priority"] = (0 if args.subscriber_priority <= 0 or "refused" in sub.output()
                                                else args.subscriber_priority)
@@ -541,53 +730,38 @@ def measure(args, env, tmp: pathlib.Path, prim_file: pathlib.Path, spec, limits,
             metrics.update(server_period_p99_err_ms=float(found[-1][1]), server_missed=int(found[-1][2]))
         # time inside the server's Condition callback (the rest of a round trip: transport, executors)
         found = re.findall(r"condition handled in p50 ([\d.]+) ms, p99 ([\d.]+) ms", server.output())
-        if found and args.service == "condition":  # (list_primitives: only the orchestrator's one call)
+        if found:
             metrics.update(srv_handler_p50_ms=float(found[-1][0]), srv_handler_p99_ms=float(found[-1][1]))
         found = re.findall(r"(\d+) garbage collections .*?, ([\d.]+) ms in total, longest ([\d.]+) ms", server.output())
         if found:  # in the server process since its start-up objects were frozen
             metrics.update(server_gc_count=int(found[-1][0]), server_gc_max_ms=float(found[-1][2]))
-        rtt = client["rtt"] * 1e3
-        metrics.update(srv_service=args.service,
-                       srv_p50_ms=float(np.percentile(rtt, 50)), srv_p99_ms=float(np.percentile(rtt, 99)),
+        rtt, rtt_list = client["rtt"] * 1e3, client["rtt_list"] * 1e3
+        metrics.update(srv_p50_ms=float(np.percentile(rtt, 50)), srv_p99_ms=float(np.percentile(rtt, 99)),
                        srv_calls=int(rtt.size), srv_failures=int(client["fails"]),
+                       srv_list_p50_ms=float(np.percentile(rtt_list, 50)),
+                       srv_list_p99_ms=float(np.percentile(rtt_list, 99)),
+                       srv_list_calls=int(rtt_list.size), srv_list_failures=int(client["fails_list"]),
                        long_goal_code=int(res.code.value) if res is not None else -1,
                        **{f"cpu_{k}_pct": 100 * v for k, v in cpu.items()})
+        metrics.update(floor_ratios(metrics))
 
-        # ---- phase 2: random executions; the subscriber records commands and joint states
-        codes = {}
-        if sub2 is not None:
-            go(g_sub2)
-        for i in range(n_exec):
-            r = orch.condition(_condition_request(rng, spec.home))
-            if not r.success:
-                codes["condition_failed"] = codes.get("condition_failed", 0) + 1
-                continue
-            gh, fut = orch.send(r.handle, float(rng.uniform(2.0, 2.5 if args.quick else 4.0)))
-            action = rng.choice(["finish", "preempt", "cancel", "rate"])
-            orch.c.spin_for(float(rng.uniform(0.3, 1.5)))
-            if action == "cancel":
-                gh.cancel_goal_async()
-            elif action == "rate":
-                orch.set_rate(float(rng.uniform(-0.2, 0.6)))
-            elif action == "preempt":
-                r2 = orch.condition(_condition_request(rng, spec.home))
-                if r2.success:
-                    gh, fut = orch.send(r2.handle, float(rng.uniform(2.0, 4.0)))
-            if action == "rate":
-                orch.c.spin_for(1.0)
-                gh.cancel_goal_async()
-            res = orch.wait(fut, 30.0)
-            name = str(res.code.value) if res is not None else "timeout"
-            codes[name] = codes.get(name, 0) + 1
-        if sub2 is not None:
-            orch.c.spin_for(0.5)
-            go(g_sub2, "stop")
-            viol, js_viol, worst = limit_check(_load(tmp / "limits.npz", sub2, 60), dt, limits)
-        else:
-            viol, js_viol, worst = limit_check(stream, dt, limits)
-        metrics.update(limit_violations=viol + js_viol, limit_violations_measured=js_viol,
-                       executions=n_exec, **{f"worst_{k}": v for k, v in worst.items()})
-        metrics["exec_codes"] = json.dumps(codes, sort_keys=True).replace(" ", "")
+        # ---- phase 2: random executions; the second subscriber records commands and joint states
+        go(g_sub2)
+        metrics.update(random_executions(orch, rng, n_exec, spec.home, limits.max_velocity))
+        orch.c.spin_for(0.5)
+        go(g_sub2, "stop")
+        # every command of both phases checked (phase 1's long execution and phase 2's recording)
+        checks = [limit_check(stream, dt, limits, measured=False),
+                  limit_check(_load(tmp / "limits.npz", sub2, 60), dt, limits)]
+        metrics.update(limit_violations=sum(c["violations"] for c in checks) + checks[1]["measured_violations"],
+                       limit_violations_measured=checks[1]["measured_violations"],
+                       commands_checked=sum(c["commands"] for c in checks),
+                       max_jump_ratio=max(c["max_jump_ratio"] for c in checks),
+                       start_jumps=sum(c["start_jumps"] for c in checks),
+                       start_jump_max_rad=max(c["start_jump_max_rad"] for c in checks),
+                       **{f"worst_{k}": max(c[k] for c in checks) for k in (
+                           "velocity_ratio", "fd_acceleration_ratio", "jerk_ratio", "position_excess")},
+                       worst_measured_position_excess=checks[1]["measured_position_excess"])
         return metrics
     finally:
         if orch is not None:
@@ -620,13 +794,10 @@ def main(argv=None) -> int:
                     help="SCHED_FIFO priority of the stream subscriber processes, as a real-time consumer of the "
                     "stream runs (default 50, the server's realtime_priority default; 0 = normal scheduling; "
                     "refused without CAP_SYS_NICE -> normal, said in the output)")
-    ap.add_argument("--service", default="condition", choices=("condition", "list_primitives"),
-                    help="what the client process calls (default condition; list_primitives: a near-empty "
-                    "handler, i.e. the transport's share of srv_* under the same load)")
-    ap.add_argument("--reference-loop", action="store_true",
-                    help="also run, during the stream, a bare 1 kHz Python loop (no ROS, no work) at the "
-                    "subscribers' SCHED_FIFO priority in a process of its own: ref_loop_* say what the machine's "
-                    "scheduler allows a real-time loop under the same load")
+    ap.add_argument("--executions", type=int, metavar="N",
+                    help="random executions of phase 2 with the fast path (default 1000; --quick: 20)")
+    ap.add_argument("--executions-plain", type=int, metavar="N",
+                    help="random executions of phase 2 with plain rclpy (default 100; --quick: 20)")
     ap.add_argument("--priority", type=int, default=0, help=argparse.SUPPRESS)
     ap.add_argument("--role", choices=("subscriber", "client", "reference_loop"), help=argparse.SUPPRESS)
     ap.add_argument("--out", help=argparse.SUPPRESS)
@@ -635,6 +806,10 @@ def main(argv=None) -> int:
     ap.add_argument("--gate", help=argparse.SUPPRESS)
     ap.add_argument("--states", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.executions is None:
+        args.executions = 20 if args.quick else 1000
+    if args.executions_plain is None:
+        args.executions_plain = 20 if args.quick else 100
     if args.role:  # SIGINT (the orchestrator's stop) ends a role even if it was started with SIGINT ignored
         signal.signal(signal.SIGINT, signal.default_int_handler)
     if args.role == "subscriber":
@@ -644,7 +819,7 @@ def main(argv=None) -> int:
         role_reference_loop(args.out, args.gate, args.priority, 1e-3)
         return 0
     if args.role == "client":
-        role_client(args.out, args.gate, args.seconds, args.calls, args.service)
+        role_client(args.out, args.gate, args.seconds, args.calls)
         return 0
 
     from deepprompt_ros.robots.spec import load_robot
@@ -672,7 +847,7 @@ def main(argv=None) -> int:
         plain = measure(args, env, tmp, prim_file, spec, limits, False, procs)
     finally:
         _stop_all(procs)
-    metrics.update({f"{k}_plain": v for k, v in plain.items() if k not in ("srv_service",)})
+    metrics.update({f"{k}_plain": v for k, v in plain.items()})
     for k in COMPARED:  # fast path / plain rclpy: < 1 where the fast path is faster
         a, b = metrics[k], plain[k]
         metrics[f"{k}_fast_over_plain"] = float(a / b) if b else float("nan")
@@ -686,9 +861,11 @@ def main(argv=None) -> int:
     print(f"{'metric':40s} value")
     for k, v in metrics.items():
         print(f"{k:40s} {v:.4g}" if isinstance(v, float) else f"{k:40s} {v}")
-    keys = ["srv_p50_ms", "srv_p99_ms", "stream_hz", "stream_period_p99_err_ms", "stream_missed", "stream_lost",
-            "limit_violations", "srv_p50_ms_plain", "srv_p99_ms_plain", "stream_period_p99_err_ms_plain",
-            "stream_missed_plain", "limit_violations_plain"] + [f"{k}_fast_over_plain" for k in COMPARED]
+    keys = ["srv_p50_ms", "srv_p99_ms", "srv_list_p50_ms", "srv_floor_ratio", "stream_hz", "stream_period_p99_err_ms",
+            "stream_missed", "stream_lost", "ref_loop_period_p99_err_ms", "ref_loop_missed", "stream_missed_ratio",
+            "stream_p99_ratio", "limit_violations", "max_jump_ratio", "executions", "executions_ok",
+            "executions_expected_refused"]
+    keys += [f"{k}_plain" for k in keys] + [f"{k}_fast_over_plain" for k in COMPARED]
     print(" ".join(f"{k}={metrics[k]:.4g}" if isinstance(metrics[k], float) else f"{k}={metrics[k]}" for k in keys))
     return 0
 
