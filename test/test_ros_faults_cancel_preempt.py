@@ -212,7 +212,7 @@ def test_a_second_cancel_while_braking_changes_nothing(client):
     result, status = g.result()
     assert_canceled(result, status)
     assert 0.4 <= result.final_phase < 0.9, result
-    _, _, qd = assert_stream_ok(client)
+    assert_stream_ok(client)
 
 
 def test_a_goal_sent_while_a_canceled_goal_brakes_takes_over_and_the_canceled_one_ends_canceled(client):
@@ -229,4 +229,7 @@ def test_a_goal_sent_while_a_canceled_goal_brakes_takes_over_and_the_canceled_on
     assert "canceled" in ra.message and "took over" in ra.message, ra.message
     assert_succeeded(rb, sb)
     stamps, q, qd = assert_stream_ok(client)
-    assert np.all(np.diff(stamps) < 20_000_000), "the new goal must splice onto the braking stream, not restart"
+    # one motion: at rest only while held at the start (the look-ahead's first samples) and at the end
+    rest = np.flatnonzero(np.all(qd == 0.0, axis=1))
+    lookahead = ServerConfig().lookahead_ticks
+    assert not np.any((rest >= lookahead) & (rest < len(qd) - 1)), "the new goal must splice onto the braking stream"

@@ -113,11 +113,8 @@ def assert_stream_ok(stamps, q, qd, at_rest=True):
     moves by one period), ending at rest (``at_rest``)."""
     assert q.shape[0] > 10 and np.all(np.isfinite(q)) and np.all(np.isfinite(qd))
     assert np.all(np.diff(stamps) > 0)
-    acc = np.diff(qd, axis=0) / DT
-    rep = check_limits(q, qd, np.vstack([acc[:1], acc]), DT, LIMITS)
-    assert rep.position_excess == 0.0 and rep.velocity_ratio <= 1 + 1e-9, rep
-    assert rep.fd_velocity_ratio <= 1 + 1e-6 and rep.fd_acceleration_ratio <= 1 + 1e-6, rep
-    assert rep.jerk_ratio <= 1 + 1e-3, rep
+    rep = check_limits(q, qd, None, DT, LIMITS)  # accelerations: from the velocities
+    assert rep.ok(rtol=1e-6), rep
     assert not at_rest or np.all(qd[-1] == 0.0), "the stream must end at rest"
 
 

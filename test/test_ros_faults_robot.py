@@ -197,13 +197,8 @@ def assert_stream_ok(stamps, q, qd):
     assert q.shape[0] > 10, q.shape
     assert np.all(np.isfinite(q)) and np.all(np.isfinite(qd)), "a command carries NaN or inf"
     assert np.all(np.diff(stamps) > 0), "command stamps must increase"
-    acc = np.diff(qd, axis=0) / DT
-    acc = np.vstack([acc[:1], acc])
-    rep = check_limits(q, qd, acc, DT, LIMITS)
-    assert rep.position_excess == 0.0, rep
-    assert rep.velocity_ratio <= 1 + 1e-9 and rep.fd_velocity_ratio <= 1 + 1e-6, rep
-    assert rep.fd_acceleration_ratio <= 1 + 1e-6, rep
-    assert rep.jerk_ratio <= 1 + 1e-3, rep
+    rep = check_limits(q, qd, None, DT, LIMITS)  # accelerations: from the velocities
+    assert rep.ok(rtol=1e-6), rep
     assert np.all(qd[-1] == 0.0), "the stream must end at rest"
 
 
