@@ -15,8 +15,6 @@ included: no jump), and ends at rest.
 """
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 from action_msgs.msg import GoalStatus
