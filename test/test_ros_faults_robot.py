@@ -9,8 +9,8 @@ unchanged: ``stale_timeout`` 0.2 s, the shipped primitives) next to sim_bridge.
 * joint_states published by the test instead of sim_bridge, first good then bad (NaN / inf positions,
   NaN velocities, unknown or missing joints, wrong array sizes): each bad kind is refused with a log
   line of the control process naming what was wrong, the running goal brakes to rest with
-  ROBOT_STATE_STALE (its message names the refusal), no command carries a NaN, and a later good
-  execution succeeds.
+  ROBOT_STATE_STALE (its message names the refusal), no command carries a NaN, a new goal is refused
+  with ROBOT_STATE_STALE naming the refusal, and a later good execution succeeds.
 
 Every command stream is checked with :func:`~deepprompt_ros.execution.limits.check_limits` over all
 consecutive commands (a late tick adds one period of motion, so a skipped tick is no excuse for a jump).
@@ -344,14 +344,18 @@ def test_bad_joint_states_are_refused_the_goal_brakes_and_the_node_serves_on(cli
             fut, fb = start_and_reach(client, 0.02)  # good states from the test
             client.fake.bad = make
             res = wait_result(client, fut, 10.0)
-            client.fake.bad = None
             assert res.code.value == ResultCode.ROBOT_STATE_STALE and not res.success, (kind, res.message)
-            assert "refused" in res.message and logged in res.message, (kind, res.message)
+            assert "no valid joint_states for" in res.message and logged in res.message, (kind, res.message)
             assert res.final_phase < 0.95, (kind, res)
             stamps, q, qd = commands(client)
             assert_stream_ok(stamps, q, qd)
             log = server.output()[log_before:]
-            assert f"joint_states ignored: " in log and logged in log, (kind, server.output_tail())
+            assert "joint_states ignored: " in log and logged in log, (kind, server.output_tail())
+            # while only bad states come, a new goal is refused at once, saying why
+            res = wait_result(client, send(client, condition(client)), 10.0)
+            assert res.code.value == ResultCode.ROBOT_STATE_STALE, (kind, res.message)
+            assert "no valid joint_states on" in res.message and logged in res.message, (kind, res.message)
+            client.fake.bad = None
         run_to_success(client)
         assert server.running() and "Traceback" not in server.output(), server.output_tail()
     finally:

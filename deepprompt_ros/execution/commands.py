@@ -117,12 +117,14 @@ class LoopReady:
 @dataclasses.dataclass(frozen=True)
 class LoopStatus:
     """The newest joint_states' reception (time.monotonic() of the control process; None = none
-    yet) and the running goal (key None = none runs; then stage and progress are None too)."""
+    yet), the running goal (key None = none runs; then stage and progress are None too) and why the
+    joint_states received since the newest accepted one were refused ('' = none was)."""
 
     joint_states_stamp: float | None
     key: int | None
     stage: Stage | None
     progress: Progress | None
+    refused: str = ""
 
 
 @dataclasses.dataclass(frozen=True)

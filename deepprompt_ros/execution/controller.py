@@ -316,9 +316,9 @@ class ExecutionController:
         timeout = self.config.stale_timeout
         if measured is None or now - measured.stamp > timeout:
             age = math.inf if measured is None else now - measured.stamp
-            why = (f"the robot's joint_states are refused ({refused})" if refused
-                   else "the robot stopped reporting its state")
-            self._stop(Code.ROBOT_STATE_STALE, f"no joint_states for {age:.3f} s (stale_timeout {timeout:g} s): "
+            what, why = (("valid joint_states", f"the latest were refused ({refused})") if refused
+                         else ("joint_states", "the robot stopped reporting its state"))
+            self._stop(Code.ROBOT_STATE_STALE, f"no {what} for {age:.3f} s (stale_timeout {timeout:g} s): "
                        f"{why}; braked to rest")
             return
         bound = self.config.max_tracking_error

@@ -176,6 +176,11 @@ class StreamLoop:
         says why in its outcome."""
         self._refused = (reason, time.monotonic())
 
+    def state_refusal(self) -> str:
+        """Why the robot states received since the latest accepted one were refused ('' = none was)."""
+        r, m = self._refused, self._measured
+        return r[0] if r is not None and (m is None or r[1] > m.stamp) else ""
+
     @property
     def measured(self) -> MeasuredState | None:
         return self._measured
@@ -243,9 +248,7 @@ class StreamLoop:
                     ctl.cancel(goal)
                 case _SetRate(goal, rate):
                     ctl.set_rate(goal, rate)
-        refused = self._refused
-        ctl.check_faults(measured, now, refused[0] if refused is not None and
-                         (measured is None or refused[1] > measured.stamp) else "")
+        ctl.check_faults(measured, now, self.state_refusal())
         ctl.compute_next()
         self.stats.ticks += 1
         if self._pub_traj is not None and self.stats.ticks % self._traj_every == 0 and ctl.buffer:

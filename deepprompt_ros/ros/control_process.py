@@ -77,6 +77,7 @@ class ControlProcess:
         self._keys = itertools.count(1)
         self._latest: ExecutionGoal | None = None
         self._stamp: float | None = None
+        self._refused = ""  # why the child refused the joint_states since the newest accepted one
         self._summary = "no goal finished yet"
         self._stopping = False
         self._dead = ""          # why no child runs ('' = one runs)
@@ -97,7 +98,7 @@ class ControlProcess:
         theirs.close()
         self.pid = self.proc.pid
         self._conn = Connection(ours.detach())
-        self._stamp = None
+        self._stamp, self._refused = None, ""
         self._conn.send(self._setup)
         self._reader = threading.Thread(target=self._read, args=(self._conn, self.proc), name="control_link",
                                         daemon=True)
@@ -146,7 +147,7 @@ class ControlProcess:
 
     def _handle(self, msg) -> None:
         if isinstance(msg, LoopStatus):
-            self._stamp = msg.joint_states_stamp
+            self._stamp, self._refused = msg.joint_states_stamp, msg.refused
             if msg.joint_states_stamp is not None:
                 self._state_seen.set()
             goal = self._goals.get(msg.key)
@@ -224,6 +225,11 @@ class ControlProcess:
             self._state_seen.wait(wait)
             s = self._stamp
         return math.inf if s is None else time.monotonic() - s
+
+    def state_refusal(self) -> str:
+        """Why the control process refused the joint_states received since the newest accepted one
+        ('' = none was)."""
+        return self._refused
 
     def summary(self) -> str:
         """The child's loop summary sent with the latest outcome."""
@@ -365,7 +371,8 @@ def _child(fd: int, parent_pid: int) -> int:
             a = loop.active_goal
             m = loop.measured
             send(LoopStatus(None if m is None else m.stamp, None if a is None else a.key,
-                            None if a is None else a.stage, None if a is None else a.progress))
+                            None if a is None else a.stage, None if a is None else a.progress,
+                            loop.state_refusal()))
     except (OSError, EOFError):
         pass
     finally:

@@ -284,10 +284,13 @@ class PrimitiveServer(Node):
             plan = self.core.plan_execution(ExecuteRequest(g.handle, g.duration, g.phase_rate, g.cycles, g.reverse))
             age = self.loop.measured_age()
             if age > self.cfg.stale_timeout and self.loop.active_goal is None:
+                refused = self.loop.state_refusal()
+                what = "valid joint_states" if refused else "joint_states"
                 raise RequestError(Code.ROBOT_STATE_STALE, (
-                    f"no joint_states on '{self.cfg.joint_states_topic}' for {age:.3f} s" if math.isfinite(age)
-                    else f"no joint_states received on '{self.cfg.joint_states_topic}'")
-                    + f" (stale_timeout {self.cfg.stale_timeout:g} s); is the robot running?")
+                    f"no {what} on '{self.cfg.joint_states_topic}' for {age:.3f} s" if math.isfinite(age)
+                    else f"no {what} received on '{self.cfg.joint_states_topic}'")
+                    + f" (stale_timeout {self.cfg.stale_timeout:g} s); "
+                    + (f"the latest were refused: {refused}" if refused else "is the robot running?"))
             goal = self.loop.execute(ExecutionGoal(plan, str(bytes(goal_handle.goal_id.uuid).hex()), order))
             period, canceled = 1.0 / self.cfg.feedback_rate_hz, False
             while not goal.done.wait(period):
