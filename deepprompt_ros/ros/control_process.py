@@ -23,6 +23,9 @@ server stops it with ``StopLoop`` on its way down). If the child exits unexpecte
 pending goal ends with INTERNAL_ERROR (the action never hangs), the error is logged, and a new
 child is started (at most ``MAX_RESTARTS`` times); a goal sent while it starts waits for its first
 robot state (at most ``RESTART_GRACE`` s) and is executed by it.
+
+One module of about 400 lines on purpose: the two ends of the link, the server's proxy
+(:class:`ControlProcess`) and the child's main loop, speak the same messages and change together.
 """
 from __future__ import annotations
 
