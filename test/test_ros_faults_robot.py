@@ -244,13 +244,19 @@ def start_and_reach(client, phase, duration=DURATION, attempts=3):
     pytest.fail(f"{attempts} goals ended before reaching phase {phase}")
 
 
-def run_to_success(client, duration=1.2):
-    """A goal that succeeds once the server sees the robot; its commands are checked."""
-    fut = start_when_served(client, [], duration)
-    res = wait_result(client, fut)
+def run_to_success(client, duration=1.2, attempts=3):
+    """A goal that succeeds once the server sees the robot; its commands are checked. A goal that the
+    robot's pause past the shipped stale_timeout stopped (a Python simulation on a busy machine:
+    ROBOT_STATE_STALE, the robot stopped reporting) is sent again: braking was the right answer."""
+    for _ in range(attempts):
+        fut = start_when_served(client, [], duration)
+        res = wait_result(client, fut)
+        stamps, q, qd = commands(client)
+        assert_stream_ok(stamps, q, qd)
+        if res.code.value != ResultCode.ROBOT_STATE_STALE or "the robot stopped reporting" not in res.message:
+            break
+        print(f"the robot paused, sent again: {res.message}")
     assert res.success and res.code.value == ResultCode.SUCCESS, res.message
-    stamps, q, qd = commands(client)
-    assert_stream_ok(stamps, q, qd)
     return res
 
 
