@@ -80,6 +80,13 @@ from deepprompt_ros.ros.fastpath import realtime
 
 __all__ = ["PrimitiveServer", "main"]
 
+#: s a finished Execute goal stays known to the action server (its result kept, its entry in the goal
+#: status array). Clients ask for the result when the goal is accepted (rclpy's and rclcpp's action
+#: clients do), so a minute is ample; rclpy's default, 15 minutes, makes every status message (sent to
+#: every client at each state change of any goal) list every goal of the last 15 minutes, which a
+#: planner that replans a few times a second grows to thousands of entries per message.
+RESULT_TIMEOUT = 60
+
 
 class PrimitiveServer(Node):
     """The node: wiring only (logic in deepprompt_ros.server and deepprompt_ros.execution)."""
@@ -154,7 +161,8 @@ class PrimitiveServer(Node):
         self._action = ActionServer(self, Execute, "~/execute", self._execute, callback_group=ReentrantCallbackGroup(),
                                     goal_callback=lambda goal: GoalResponse.ACCEPT,
                                     handle_accepted_callback=self._on_accepted,
-                                    cancel_callback=lambda goal: CancelResponse.ACCEPT)
+                                    cancel_callback=lambda goal: CancelResponse.ACCEPT,
+                                    result_timeout=RESULT_TIMEOUT)
         if cfg.loop_mode == "timer":
             self.create_timer(1.0 / rate, self.loop.timer_tick, callback_group=MutuallyExclusiveCallbackGroup())
         self.gc = realtime.GcMonitor()
