@@ -19,7 +19,14 @@ lengths, empty and 10 000-element arrays, phases outside [0, 1], unknown primiti
 4-billion counts (uint32 max), images of the wrong size, step, data length and encoding, joint
 masks of the wrong length, negative or NaN weights, contradictory timing. The valid heavy
 requests the server's bounds allow (1 000 via-points, 10 000 preview points, 1 000 samples) are
-in the mix too. At the end every client cancels its goals that still run and waits for their results.
+in the mix too, and so is refinement with 10 000 iterations. At the end every client cancels its goals
+that still run and waits for their results.
+
+The clients are planners that do not lose answers on their side: before the run each has had one
+answer from every service and one Execute result (a response sent before the server has discovered
+the client's response reader is lost), and each of its service clients keeps 100 responses
+(rmw_fastrtps sends every response of a service to every client of it; with the default 10, a client
+lost responses among the other clients'). An answer that does not come is then not the client's doing.
 
 Every answer is classified (:func:`classify`): ``ok`` (success and code SUCCESS), ``refused``
 (success false with a code and a message), ``internal_error`` (code INTERNAL_ERROR: an exception
@@ -43,7 +50,6 @@ from __future__ import annotations
 import argparse
 import collections
 import json
-import math
 import os
 import pathlib
 import re
@@ -342,8 +348,9 @@ class Factory:
             x = np.sort(self.rng.uniform(0.0, 1.0, m))
             w = self.rng.uniform(0.0, 1.0, m)
             if self._break("schedule", 0.5):
-                kind = self._bad("schedule", ("unsorted", "duplicate phase", "NaN phase", "weight > 1", "negative weight",
-                                              "phase > 1", "lengths differ", "1001 knots", "10000 knots", "inf weight"))
+                kind = self._bad("schedule", ("unsorted", "duplicate phase", "NaN phase", "weight > 1",
+                                              "negative weight", "phase > 1", "lengths differ", "1001 knots",
+                                              "10000 knots", "inf weight"))
                 if kind == "unsorted" and m > 1:
                     x = x[::-1]
                 elif kind == "duplicate phase" and m > 1:
@@ -852,7 +859,8 @@ def main(argv=None) -> int:
     fig = figures(records, len(problems), wall)
     header = (f"primitive_server fuzzing ({'quick' if args.quick else 'full'}, seed {args.seed}, {n_clients} clients, "
               f"timeout {args.timeout:g} s, load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs, total "
-              f"{time.monotonic() - t_start:.0f} s" + "".join(f", server {p}" for p in args.param) + f"; logs in {tmp})")
+              f"{time.monotonic() - t_start:.0f} s" + "".join(f", server {p}" for p in args.param)
+              + f"; logs in {tmp})")
     report(records, fig, problems, header)
     return 0
 

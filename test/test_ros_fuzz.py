@@ -2,9 +2,11 @@
 (``--quick``: 400 requests from 2 client processes against real sim_bridge and primitive_server
 processes) whose figures must meet their targets."""
 import importlib.util
+import os
 import pathlib
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -44,6 +46,20 @@ def test_figures_count_the_outcomes_and_refuse_unknown_ones(fuzz):
                        fuzz_wall_s=3.0, fuzz_requests_per_s=2.0)
     with pytest.raises(ValueError, match="unknown outcomes"):
         fuzz.figures([{"outcome": "lost"}], crashes=0, wall_s=1.0)
+
+
+def test_a_process_that_ended_counts_as_not_alive(fuzz):
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()  # reaped: no /proc entry left
+    assert fuzz._alive(os.getpid()) and not fuzz._alive(proc.pid)
+    zombie = subprocess.Popen([sys.executable, "-c", "pass"])
+    try:
+        deadline = time.monotonic() + 30
+        while fuzz._alive(zombie.pid) and time.monotonic() < deadline:  # exited, not yet reaped: a zombie
+            time.sleep(0.05)
+        assert not fuzz._alive(zombie.pid)
+    finally:
+        zombie.wait()
 
 
 def test_quick_fuzzing_run_leaves_no_request_unanswered_no_crash_and_no_silent_refusal():

@@ -262,11 +262,13 @@ class PrimitiveServerCore:
             contexts[c.modality] = vals[None, :]
             cweights[c.modality] = [w]
 
-        # ---- aggregate (paper Eq. 1 / Eq. 3 with importance weights)
+        # ---- aggregate (paper Eq. 1 / Eq. 3 with importance weights); an overflow is refused below,
+        # with the values that caused it, instead of a numpy warning without them in the node's log
         try:
-            latent = model.condition(vx if n else None, vy if n else None, vw if n else None,
-                                     vmask if n else None, contexts or None, cweights or None,
-                                     images, image_weight)
+            with np.errstate(over="ignore", invalid="ignore"):
+                latent = model.condition(vx if n else None, vy if n else None, vw if n else None,
+                                         vmask if n else None, contexts or None, cweights or None,
+                                         images, image_weight)
         except ValueError as exc:
             raise RequestError(Code.INVALID_REQUEST, str(exc)) from None
         if not (np.all(np.isfinite(latent.mean)) and np.all(np.isfinite(latent.var))):
