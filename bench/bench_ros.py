@@ -363,12 +363,12 @@ class Orchestrator:
 
         return self.c.call(Condition, f"{SERVER}/condition", req)
 
-    def blend(self, handle_a, handle_b, phases=(), weights=()):
+    def blend(self, handle_a, handle_b, phases=(), weights=(), preview_points=100):
         from deepprompt_msgs.srv import Blend
 
         return self.c.call(Blend, f"{SERVER}/blend", Blend.Request(
             handle_a=handle_a, handle_b=handle_b, schedule_phases=list(phases), schedule_weights=list(weights),
-            preview_points=100))
+            preview_points=preview_points))
 
     def set_rate(self, rate):
         from deepprompt_msgs.srv import SetPhaseRate
@@ -410,11 +410,16 @@ class Orchestrator:
 SCENARIOS = {"finish": 0.04, "reverse": 0.02, "cancel": 0.35, "preempt": 0.4, "rate": 0.14, "too_fast": 0.05}
 
 
-def _min_duration(preview_mean, preview_phases, v_max) -> float:
-    """Shortest duration at which the previewed mean keeps the velocity limits (finite differences of
-    the preview; the server's own check on its finer grid asks up to a few % more)."""
-    speed = np.abs(np.diff(preview_mean, axis=0)) / np.diff(preview_phases)[:, None]
-    return float((speed / v_max).max())
+def _min_duration(preview, limits, config) -> float:
+    """Shortest duration the server accepts for a handle whose preview was asked on its execution grid
+    (``config.execution_grid_points`` phases): the velocity check of plan_execution on the same
+    trajectory (execution.plan.ExecutionReference's differences, the joints matched by name)."""
+    from deepprompt_ros.execution.plan import ExecutionReference
+
+    mean = np.array(preview.mean, dtype=float).reshape(preview.n_points, preview.n_joints)
+    v_max = dict(zip(limits.names, limits.max_velocity))
+    speed = ExecutionReference(mean, False, config.derivative_step).max_speed_per_phase()
+    return float(max(sp / v_max[name] for sp, name in zip(speed, preview.joint_names)))
 
 
 class _Execution:
@@ -434,7 +439,7 @@ class _Execution:
         return self.phase is not None and abs(self.phase - start) > 1e-9
 
 
-def random_executions(orch, rng, n: int, home, v_max) -> dict:
+def random_executions(orch, rng, n: int, home, limits, config) -> dict:
     """``n`` random executions, one after the other (a preempting goal is the next execution), each
     conditioned on 1-5 random via-points and a random context, a quarter of them blended with the
     previous handle (Blend, linear hand-over); scenarios from SCENARIOS. Returns the figures:
@@ -468,18 +473,20 @@ def random_executions(orch, rng, n: int, home, v_max) -> dict:
             kind = "finish"  # a refused goal would not preempt the running one
         if kind == "preempt" and i == n - 1:
             kind = "cancel"  # the last execution has no successor
-        r = orch.condition(_condition_request(rng, home, int(rng.integers(1, 6))))
+        # the preview on the execution grid: the shortest duration the server accepts, exactly
+        req = _condition_request(rng, home, int(rng.integers(1, 6)))
+        req.preview_points = config.execution_grid_points
+        r = orch.condition(req)
         if not r.success:
             raise RuntimeError(f"Condition failed: {r.message}")
         handle, preview = r.handle, r.preview
         if last_handle is not None and rng.random() < 0.25:
-            b = orch.blend(r.handle, last_handle)
+            b = orch.blend(r.handle, last_handle, preview_points=config.execution_grid_points)
             if not b.success:
                 raise RuntimeError(f"Blend failed: {b.message}")
             handle, preview = b.handle, b.preview
         last_handle = r.handle
-        mean = np.array(preview.mean, dtype=float).reshape(preview.n_points, -1)
-        t_min = _min_duration(mean, np.array(preview.phases), v_max)
+        t_min = _min_duration(preview, limits, config)
         duration = 0.5 * t_min if kind == "too_fast" else t_min * float(rng.uniform(1.3, 1.6))
         ex = _Execution(kind, expect.get(kind, RC.SUCCESS), duration)
         ex.gh, ex.fut = orch.send(handle, duration, reverse=kind == "reverse", feedback=ex.feedback)
@@ -688,8 +695,13 @@ def measure(args, env, tmp: pathlib.Path, prim_file: pathlib.Path, spec, limits,
     reference loop, each in its own process) and phase 2 (random executions, limits). Every process
     started here is appended to ``procs`` and stopped before returning."""
     from deepprompt_ros.ros.testing import NodeProcess
+    from deepprompt_ros.server.config import ServerConfig
 
     dt = 1.0 / spec.control_rate_hz
+    # the server's execution grid (its defaults unless --param sets them): phase 2's shortest durations
+    given = dict(p.split(":=", 1) for p in args.param)
+    server_config = ServerConfig(**{k: type(getattr(ServerConfig, k))(given[k])
+                                    for k in ("execution_grid_points", "derivative_step") if k in given})
     stream_s, calls = (2.0, 20) if args.quick else (40.0, 1000)
     n_exec = args.executions if fast_path else args.executions_plain
     mode = "fast" if fast_path else "plain"
@@ -795,7 +807,7 @@ def measure(args, env, tmp: pathlib.Path, prim_file: pathlib.Path, spec, limits,
 
         # ---- phase 2: random executions; the second subscriber records commands and joint states
         go(g_sub2)
-        metrics.update(random_executions(orch, rng, n_exec, spec.home, limits.max_velocity))
+        metrics.update(random_executions(orch, rng, n_exec, spec.home, limits, server_config))
         orch.c.spin_for(0.5)
         go(g_sub2, "stop")
         # another run's nodes in this domain (drawn at random; seen after each phase) make every figure suspect
