@@ -182,6 +182,14 @@ METADATA_CASES = {
     "metadata_not_json": (lambda m: {**m, "metadata": "{"}, "metadata entry 'metadata' is not valid JSON"),
     "phase_type_disagrees": (lambda m: {**m, "phase_type": "rhythmic"},
                              "has phase type 'rhythmic' but its model config 'linear'"),
+    "latent_linear_without_basis": (lambda m: _config(m, latent_linear=2),
+                                    "latent_linear = 2 needs a linear basis: expected decoder_basis >= 2, got 0"),
+    "latent_linear_above_latent_dim": (lambda m: _config(m, decoder_basis=4, latent_linear=5),
+                                       "latent_linear = 5: expected at most latent_dim = 4"),
+    "latent_linear_above_basis_weights": (lambda m: _config(m, decoder_basis=2, latent_dim=6, latent_linear=5),
+                                          "latent_linear = 5: expected at most decoder_basis x n_joints = 2 x 2 = 4"),
+    "latent_linear_negative": (lambda m: _config(m, latent_linear=-1), "latent_linear = -1: expected a value in"),
+    "via_noise_zero": (lambda m: _config(m, via_noise=0.0), "via_noise = 0.0 normalized: expected a value in \\(0, inf\\)"),
 }
 
 
@@ -211,7 +219,7 @@ def _poke(value):
     return fn
 
 
-ARCH = r"its model config \(2 joints, latent_dim 4, hidden 8\)"
+ARCH = r"its model config \(2 joints, latent_dim 4, hidden 8, decoder_basis 0, latent_linear 0\)"
 TENSOR_CASES = {
     "missing_weight": (lambda t: _without(t, "net.head.weight"), f"lacks tensor\\(s\\) 'net.head.weight' that {ARCH} needs"),
     "missing_normalization": (lambda t: _without(t, "norm.ctx_std.obj"), "lacks tensor\\(s\\) 'norm.ctx_std.obj'"),
@@ -245,7 +253,8 @@ def test_bad_tensors_are_refused(good, tmp_path, case):
 def test_a_config_that_disagrees_with_the_weights_is_refused(good, tmp_path):
     path = _write(tmp_path / "wider.safetensors", _config(good[1], hidden=16), good[2])
     with pytest.raises(CheckpointError, match=r"tensor 'net.\w+.0.weight' has shape \(8, \d+\) but its model config "
-                                              r"\(2 joints, latent_dim 4, hidden 16\) needs \(16, \d+\)"):
+                                              r"\(2 joints, latent_dim 4, hidden 16, decoder_basis 0, latent_linear 0\) "
+                                              r"needs \(16, \d+\)"):
         load_checkpoint(path)
     path = _write(tmp_path / "context.safetensors", _config(good[1], context_dims=[["obj", 5]]), good[2])
     with pytest.raises(CheckpointError, match="has shape .* needs"):
@@ -256,8 +265,26 @@ def test_a_config_of_a_huge_network_is_refused_before_anything_is_allocated(good
     # 10^6 x 10^6 float32 weights would be 4 TB: the shapes are compared on the meta device first
     path = _write(tmp_path / "huge.safetensors", _config(good[1], hidden=10 ** 6, latent_dim=10 ** 5), good[2])
     with pytest.raises(CheckpointError, match=r"has shape \(8, 3\) but its model config \(2 joints, latent_dim "
-                                              r"100000, hidden 1000000\) needs \(1000000, 3\)"):
+                                              r"100000, hidden 1000000, decoder_basis 0, latent_linear 0\) needs "
+                                              r"\(1000000, 3\)"):
         load_checkpoint(path)
+
+
+def test_a_latent_split_that_disagrees_with_the_weights_is_refused(tmp_path):
+    """A file of a split latent (k_l = 2 of 4, basis 3) whose config states another split: the basis
+    reads k_l inputs and the MLP k − k_l, so the shapes say which split the weights were made for."""
+    net = DeepProMPNet(ModelConfig(n_joints=2, latent_dim=4, hidden=8, decoder_basis=3, latent_linear=2))
+    path = save_checkpoint(tmp_path / "split.safetensors", net, Normalization(np.zeros(2), np.ones(2)), ["a", "b"])
+    meta, tensors = _contents(path)
+    assert load_checkpoint(path).config.latent_linear == 2
+    # the decoder's first layer reads z_nl and the phase (k − k_l + 1 inputs), the basis z_lin (k_l, or k for 0)
+    for k_l, needs in ((3, r"'net.decoder.0.weight' has shape \(8, 3\) but .* needs \(8, 2\)"),
+                       (0, r"'net.decoder.0.weight' has shape \(8, 3\) but .* needs \(8, 5\)")):
+        bad = _write(tmp_path / f"split{k_l}.safetensors", _config(meta, latent_linear=k_l), tensors)
+        with pytest.raises(CheckpointError, match=rf"tensor {needs}"):
+            load_checkpoint(bad)
+        with pytest.raises(CheckpointError, match=rf"decoder_basis 3, latent_linear {k_l}\)"):
+            load_checkpoint(bad)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -177,7 +177,8 @@ def load_checkpoint(path) -> Checkpoint:
     Refused: a path that does not exist or is not a file, a file that is not safetensors (a pickle,
     a truncated or corrupt file, an implausible header size), another format tag, metadata that is
     missing or not the JSON expected (model config, joint names, metadata object), a model config
-    that is invalid or disagrees with the joint names or the phase type, tensors missing, extra or
+    that is invalid (e.g. a ``latent_linear`` without a linear basis, larger than the latent or than
+    the basis's weights, a ``via_noise`` <= 0) or disagrees with the joint names or the phase type, tensors missing, extra or
     of another shape than the model config's architecture (compared before the network is built,
     so a config that describes a huge network allocates nothing), non-float, NaN or inf tensors,
     and a normalization whose standard deviations are not positive.
@@ -202,7 +203,8 @@ def load_checkpoint(path) -> Checkpoint:
                               f"'{cfg.phase_type}'")
     shapes = module_shapes(lambda: DeepProMPNet(cfg), "net.") | normalization_shapes(cfg.n_joints, cfg.context_dims)
     check_tensors(tensors, shapes, path, f"its model config ({cfg.n_joints} joints, latent_dim {cfg.latent_dim}, "
-                  f"hidden {cfg.hidden})", CheckpointError)
+                  f"hidden {cfg.hidden}, decoder_basis {cfg.decoder_basis}, latent_linear {cfg.latent_linear})",
+                  CheckpointError)
     norm = read_normalization(tensors, cfg.n_joints, cfg.context_dims, path, CheckpointError)
     state = {k[4:]: v for k, v in tensors.items() if k.startswith("net.")}
     ck = Checkpoint(cfg, state, norm, joint_names, extra)

@@ -2,8 +2,9 @@
 the per-element (μ_i, σ²_i) that :func:`deepprompt_ros.model.aggregation.bayesian_aggregate`
 combines, and an MLP decoder μ_y(z, x) — optionally a residual over a linear basis,
 μ_y(z, x) = Φ(x)(b + A z) + s·MLP(z, x) (``ModelConfig.decoder_basis``; the linear part alone is a
-PPCA-style ProMP in the latent). The phase enters through
-:mod:`deepprompt_ros.model.phase`.
+PPCA-style ProMP in the latent), or with the latent split into a linear and a nonlinear block
+(``ModelConfig.latent_linear``), μ_y(z, x) = Φ(x)(b + A z_lin) + s·MLP(z_nl, x). The phase enters
+through :mod:`deepprompt_ros.model.phase`.
 
 All tensors here are in *normalized* units (joint positions and low-dim contexts standardized
 with the training set's statistics); :mod:`deepprompt_ros.primitive.deep_promp` converts to and from
@@ -33,6 +34,25 @@ def decoder_basis_error(n_b: int) -> str:
     return "" if n_b != 1 else f"decoder_basis = {n_b!r}: expected 0 (no linear basis) or >= 2"
 
 
+def latent_linear_errors(k_l: int, latent_dim: int, n_b: int, n_joints: int) -> list[str]:
+    """The rules of ``latent_linear`` k_l its range [0, inf] cannot state: a linear block needs a
+    linear basis (``decoder_basis`` n_b >= 2), is part of the latent (k_l <= ``latent_dim``) and has
+    no more directions than the basis has weights (k_l <= n_b·d). One message per broken rule."""
+    if k_l == 0:
+        return []
+    errors = []
+    if n_b < 2:
+        errors.append(f"latent_linear = {k_l!r} needs a linear basis: expected decoder_basis >= 2, got {n_b!r} "
+                      "(or latent_linear 0)")
+    if k_l > latent_dim:
+        errors.append(f"latent_linear = {k_l!r}: expected at most latent_dim = {latent_dim!r} (the linear block "
+                      "is part of the latent)")
+    if n_b >= 2 and k_l > n_b * n_joints:
+        errors.append(f"latent_linear = {k_l!r}: expected at most decoder_basis x n_joints = {n_b} x {n_joints} = "
+                      f"{n_b * n_joints} (the weights of the linear part)")
+    return errors
+
+
 @dataclasses.dataclass(frozen=True)
 class ModelConfig:
     """Architecture of a DeepProMP (stored inside every checkpoint).
@@ -58,6 +78,13 @@ class ModelConfig:
     (von Mises functions for a rhythmic phase; :func:`deepprompt_ros.model.phase.phase_basis`), b (n_b, d)
     and A (n_b, d, k) learned (parameter ``basis``). The linear part is a PPCA-style ProMP whose
     weights are b + A z; the MLP adds the nonlinearity. 0: the plain MLP decoder of the paper.
+
+    ``latent_linear`` k_l > 0 splits the latent into z = [z_lin (k_l), z_nl (k − k_l)] and the residual
+    decoder into μ_y(z, x) = Φ(x)(b + A z_lin) + s·MLP(z_nl, x): A is (n_b, d, k_l) and the MLP never
+    sees z_lin, so the decoder is linear in z_lin for a fixed z_nl and via-point conditioning of z_lin
+    is exact Gaussian conditioning (:meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.condition`),
+    with ``via_noise`` the standard deviation of a via-point there (normalized joint units). 0: the
+    linear part and the MLP both read all of z.
 
     ``variance_head`` "exp": a large σ²_i (an element that says almost nothing, precision → 0) is a
     moderate r, reached by gradient steps of the usual size; with softplus σ²_i grows only linearly in r.
@@ -86,9 +113,24 @@ class ModelConfig:
     variance_head: str = param("softplus", "how the shared head's output r becomes σ²_i: softplus(r) + var_floor, "
                                            "or exp(min(r, 12)) + var_floor (a large σ²_i, an element that says "
                                            "almost nothing, is then a moderate r)", choices=VARIANCE_HEADS)
+    latent_linear: int = param(0, "k_l: 0 = the linear part and the MLP both read all of z; > 0 = the first k_l "
+                                  "latent dimensions z_lin drive the linear part alone and the MLP reads only the "
+                                  "other k - k_l (the decoder is linear in z_lin: via-points condition it exactly); "
+                                  "needs decoder_basis >= 2, k_l <= latent_dim and k_l <= decoder_basis x n_joints",
+                               min=0)
+    via_noise: float = param(1e-4, "standard deviation of a via-point in the exact conditioning of the linear "
+                                   "latent block (latent_linear > 0) when a request states none", gt=0.0,
+                             unit="normalized")
 
     def __post_init__(self):
-        validate(self, rules=lambda c: [decoder_basis_error(c.decoder_basis)])
+        validate(self, rules=lambda c: [decoder_basis_error(c.decoder_basis),
+                                        *latent_linear_errors(c.latent_linear, c.latent_dim, c.decoder_basis,
+                                                              c.n_joints)])
+
+    @property
+    def latent_nonlinear(self) -> int:
+        """k − k_l, the dimension of the block z_nl the MLP reads (all of z when ``latent_linear`` is 0)."""
+        return self.latent_dim - self.latent_linear
 
     @property
     def phase_dim(self) -> int:
@@ -165,12 +207,15 @@ class DeepProMPNet(nn.Module):
         self.image_encoder = ImageEncoder(h) if cfg.image_shape else None
         self.head = nn.Linear(h, 2 * k)  # ONE affine head shared by all encoders
         self.decoder = nn.Sequential(
-            nn.Linear(k + cfg.phase_dim, h), nn.ReLU(), nn.Linear(h, h), nn.ReLU(), nn.Linear(h, cfg.n_joints))
+            nn.Linear(cfg.latent_nonlinear + cfg.phase_dim, h), nn.ReLU(), nn.Linear(h, h), nn.ReLU(),
+            nn.Linear(h, cfg.n_joints))
         if cfg.decoder_basis:
-            # linear part: weights b + A z of the n_b basis functions of each joint, row b·d + j
-            self.basis = nn.Linear(k, cfg.decoder_basis * cfg.n_joints)
+            # linear part: weights b + A z (z_lin when latent_linear > 0) of the n_b basis functions of
+            # each joint, row b·d + j
+            k_in = cfg.latent_linear or k
+            self.basis = nn.Linear(k_in, cfg.decoder_basis * cfg.n_joints)
             nn.init.zeros_(self.basis.bias)
-            nn.init.normal_(self.basis.weight, std=0.1 / math.sqrt(k))
+            nn.init.normal_(self.basis.weight, std=0.1 / math.sqrt(k_in))
 
     # -- encoders -------------------------------------------------------------------------
     def _head(self, feat: torch.Tensor):
@@ -197,10 +242,11 @@ class DeepProMPNet(nn.Module):
 
     # -- decoder --------------------------------------------------------------------------
     def decode(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-        """μ_y(z, x): z (B, k), x (B, T) or (T,) → (B, T, d)."""
+        """μ_y(z, x): z (B, k), x (B, T) or (T,) → (B, T, d). With ``latent_linear`` k_l > 0 the MLP
+        reads z_nl = z[:, k_l:] only."""
         if x.dim() == 1:
             x = x.unsqueeze(0).expand(z.shape[0], -1)
-        zz = z.unsqueeze(1).expand(-1, x.shape[1], -1)
+        zz = z[:, self.cfg.latent_linear:].unsqueeze(1).expand(-1, x.shape[1], -1)
         out = self.decoder(torch.cat([zz, self.phase_features(x)], -1))
         if not self.cfg.decoder_basis:
             return out
@@ -212,7 +258,9 @@ class DeepProMPNet(nn.Module):
         return phase_basis(x, c.decoder_basis, c.basis_width, c.phase_type == "rhythmic")
 
     def decode_linear(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-        """The linear part Φ(x)(b + A z): z (B, k), x (B, T) → (B, T, d)."""
-        w = self.basis(z).reshape(z.shape[0], self.cfg.decoder_basis, self.cfg.n_joints)  # (B, n_b, d)
+        """The linear part Φ(x)(b + A z): z (B, k), x (B, T) → (B, T, d); with ``latent_linear`` k_l > 0
+        it reads z_lin = z[:, :k_l] only."""
+        k_l = self.cfg.latent_linear
+        w = self.basis(z[:, :k_l] if k_l else z).reshape(z.shape[0], self.cfg.decoder_basis, self.cfg.n_joints)
         return torch.bmm(self.basis_functions(x), w)
 

@@ -61,21 +61,25 @@ class NumpyNet:
         self._head_b = net.head.bias.detach().double().numpy().copy()
         self._head_WT = np.ascontiguousarray(self._head_W.T)
         self._dec = NumpyMLP(net.decoder)
-        k = self.cfg.latent_dim
+        k, k_l = self.cfg.latent_dim, self.cfg.latent_linear
+        self.k_lin = k_l  # z[:k_l] drives the linear part alone, z[k_l:] the MLP (0: both read all of z)
         nb, d = self.cfg.decoder_basis, self.cfg.n_joints
         if nb:  # residual decoder: the MLP's output layer carries the factor s, the linear part is separate
             self._dec.W[-1] = self._dec.W[-1] * self.cfg.residual_scale
             self._dec.b[-1] = self._dec.b[-1] * self.cfg.residual_scale
             self._dec.WT[-1] = np.ascontiguousarray(self._dec.W[-1].T)
             ystd = np.asarray(normalization.y_std, dtype=np.float64)
-            # Φ(x)(b + A z) in joint units: b (n_b, d), A as (k, n_b·d) for z @ A and (n_b, d, k) for the Jacobian
-            bw = net.basis.weight.detach().double().numpy().reshape(nb, d, k) * ystd[None, :, None]
+            # Φ(x)(b + A z) in joint units: b (n_b, d), A as (k_a, n_b·d) for z @ A and (n_b, d, k_a) for the
+            # Jacobian, k_a = k_l or k
+            k_a = k_l or k
+            bw = net.basis.weight.detach().double().numpy().reshape(nb, d, k_a) * ystd[None, :, None]
             self._basis_b = net.basis.bias.detach().double().numpy().reshape(nb, d) * ystd[None, :]
             self._basis_A = np.ascontiguousarray(bw)
-            self._basis_AT = np.ascontiguousarray(bw.reshape(nb * d, k).T)
+            self._basis_AT = np.ascontiguousarray(bw.reshape(nb * d, k_a).T)
         self._phi_cache: dict[bytes, np.ndarray] = {}
-        self._dec_W1z = self._dec.W[0][:, :k]
-        self._dec_W1x = self._dec.W[0][:, k:]
+        k_n = self.cfg.latent_nonlinear
+        self._dec_W1z = self._dec.W[0][:, :k_n]  # the MLP's first layer: z_nl part, phase part
+        self._dec_W1x = self._dec.W[0][:, k_n:]
         self.y_mean = np.asarray(normalization.y_mean, dtype=np.float64)
         self.y_std = np.asarray(normalization.y_std, dtype=np.float64)
         # decode() fast path: contiguous transposed weights, the output layer with the
@@ -119,16 +123,28 @@ class NumpyNet:
     def decode(self, z, x) -> np.ndarray:
         """μ_y(z, x) in joint units: z (k,) → (T, d), z (n, k) → (n, T, d); x (T,)."""
         z = np.asarray(z, dtype=np.float64)
-        pre_x = self._layer1_phase(x)  # (T, h)
-        if z.ndim == 1:
-            h = pre_x + z @ self._W1zT
-        else:
-            h = pre_x[None] + (z @ self._W1zT)[:, None, :]
-        np.maximum(h, 0.0, out=h)
-        out = self._decode_hidden(h)
+        out = self.decode_nonlinear(z[..., self.k_lin:], x)
         if self.cfg.decoder_basis:
             out += self._linear_part(z, x)
         return out
+
+    def decode_nonlinear(self, z_nl: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """The decoder without its linear part, s·MLP(z_nl, x) plus the joints' mean, joint units:
+        z_nl (k − k_l,) → (T, d), (n, k − k_l) → (n, T, d); x (T,). (The whole decoder when there is no
+        linear basis; with ``latent_linear`` 0, z_nl is all of z.)"""
+        pre_x = self._layer1_phase(x)  # (T, h)
+        if z_nl.ndim == 1:
+            h = pre_x + z_nl @ self._W1zT
+        else:
+            h = pre_x[None] + (z_nl @ self._W1zT)[:, None, :]
+        np.maximum(h, 0.0, out=h)
+        return self._decode_hidden(h)
+
+    def linear_design(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The linear part at phases x (n,) in joint units: Φ(x) b (n, d) and its matrix in z_lin,
+        Φ(x) A (n, d, k_l), so the part is Φ(x) b + Φ(x) A z_lin (``latent_linear`` > 0 only)."""
+        phi = self._phi(x)
+        return phi @ self._basis_b, np.einsum("nb,bdk->ndk", phi, self._basis_A)
 
     @staticmethod
     def _per_grid(cache: dict, x, compute: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
@@ -153,8 +169,10 @@ class NumpyNet:
 
     def _linear_part(self, z: np.ndarray, x: np.ndarray) -> np.ndarray:
         """Φ(x)(b + A z) in joint units (without the mean, which ``_b3`` carries): z (k,) → (T, d),
-        z (n, k) → (n, T, d)."""
+        z (n, k) → (n, T, d); reads z_lin = z[..., :k_l] only when ``latent_linear`` k_l > 0."""
         nb, d = self.cfg.decoder_basis, self.cfg.n_joints
+        if self.k_lin:
+            z = z[..., :self.k_lin]
         w = (z @ self._basis_AT).reshape(*z.shape[:-1], nb, d) + self._basis_b  # (..., n_b, d)
         return self._phi(x) @ w
 
@@ -174,11 +192,11 @@ class NumpyNet:
 
     def decode_per_phase(self, z_x: np.ndarray, x: np.ndarray) -> np.ndarray:
         """Decode a latent that varies with phase (blending): z_x (T, k), x (T,) → (T, d)."""
-        h = self._layer1_phase(x) + z_x @ self._W1zT
+        h = self._layer1_phase(x) + z_x[:, self.k_lin:] @ self._W1zT
         np.maximum(h, 0.0, out=h)
         out = self._decode_hidden(h)
         if self.cfg.decoder_basis:  # Σ_b φ_b(x_t)(b_b + A_b z_t), one z per phase
-            w = (z_x @ self._basis_AT).reshape(z_x.shape[0], self.cfg.decoder_basis, self.cfg.n_joints) + self._basis_b
+            w = ((z_x[:, :self.k_lin] if self.k_lin else z_x) @ self._basis_AT).reshape(z_x.shape[0], self.cfg.decoder_basis, self.cfg.n_joints) + self._basis_b
             out += np.einsum("tb,tbd->td", self._phi(x), w)
         return out
 
@@ -204,7 +222,8 @@ class NumpyNet:
             b = float(smoothing)
             act = lambda h: np.logaddexp(0.0, b * h) / b  # noqa: E731
             dact = lambda h: 0.5 * (1.0 + np.tanh(0.5 * b * h))  # noqa: E731  (= sigmoid(βh))
-        zw = z @ self._W1zT  # (h,) or (K, h)
+        k_l = self.k_lin
+        zw = z[..., k_l:] @ self._W1zT  # (h,) or (K, h)
         pre1 = self._layer1_phase(x) + zw[..., None, :]  # (..., n, h)
         pre2 = act(pre1) @ self._dec.WT[1] + self._dec.b[1]
         y = act(pre2) @ self._W3T + self._b3
@@ -212,8 +231,12 @@ class NumpyNet:
         # instead of h²·k + d·h·k
         c = self._dec.W[2][..., None, :, :] * dact(pre2)[..., None, :]  # (..., n, d, h)
         c = np.matmul(c, self._dec.W[1]) * dact(pre1)[..., None, :]  # batched BLAS, (..., n, d, h)
-        jac = np.matmul(c, self._dec_W1z) * self.y_std[:, None]  # (..., n, d, k)
+        jac = np.matmul(c, self._dec_W1z) * self.y_std[:, None]  # (..., n, d, k − k_l)
         if self.cfg.decoder_basis:  # the linear part: its Jacobian Σ_b φ_b(x) A_b is the same for every z
             y = y + self._linear_part(z, x)
-            jac = jac + np.einsum("nb,bdk->ndk", self._phi(x), self._basis_A)
+            jac_lin = np.einsum("nb,bdk->ndk", self._phi(x), self._basis_A)
+            if k_l:  # ∂/∂z_lin is the linear part's alone, ∂/∂z_nl the MLP's alone
+                jac = np.concatenate([np.broadcast_to(jac_lin, (*jac.shape[:-1], k_l)), jac], -1)
+            else:
+                jac = jac + jac_lin
         return y, jac
