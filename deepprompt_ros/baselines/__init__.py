@@ -13,7 +13,8 @@ Six models, one code path for an evaluation harness::
 kind                model (module)
 ==================  ==================================================================================
 ``deepprompt``      ``DeepProMPModel`` (``deep_promp_model``): adapter over training.loop.train + DeepProMP
-``promp``           ``ProMPModel`` (``promp_model``): adapter over the closed-form ProMP (``promp``)
+``promp``           ``ProMPModel`` (``promp_model``): adapter over the closed-form ProMP (``promp``), its
+                    regularizer and via-point noise cross-validated on its training demos (``promp_selection``)
 ``cnmp``            ``CNMP`` (``concat``): one encoder on concatenated inputs, mean aggregation
 ``vae_cnmp``        ``VAECNMP`` (``concat``): the same with a Gaussian latent and an isotropic prior
 ``cnmp_indep``      ``CNMPIndep``, ``VAECNMPIndep`` (``concat``): trained with zero padding and

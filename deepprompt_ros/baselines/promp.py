@@ -83,13 +83,17 @@ class ProMP:
         diagonal of ΦᵀΦ (scale-free with respect to the number of samples).
     cov_reg : float or None
         λ added to the diagonal of the weight covariance (see :meth:`fit`); None chooses it.
+    cov_reg_scale : float or None
+        Instead of ``cov_reg``: λ relative to the demonstrations' weight variance,
+        λ = cov_reg_scale · max(mean(diag(cov_i w_i)), (0.01 · y_range)²) (see :meth:`fit`); the scale
+        :func:`deepprompt_ros.baselines.promp_selection.select_promp` chooses by cross-validation.
     joint_names : sequence of str, optional
         Used in error messages (default joint_1..joint_d).
     """
 
     def __init__(self, n_joints: int, n_basis: int = 20, *, rhythmic: bool = False,
                  width: float = 1.0, ridge: float = 1e-8, cov_reg: float | None = None,
-                 joint_names: Sequence[str] | None = None):
+                 cov_reg_scale: float | None = None, joint_names: Sequence[str] | None = None):
         if int(n_joints) != n_joints or n_joints < 1:
             raise ValueError(f"n_joints must be an integer >= 1; got {n_joints}")
         if int(n_basis) != n_basis or n_basis < 2:
@@ -100,12 +104,18 @@ class ProMP:
             raise ValueError(f"ridge must be >= 0; got {ridge}")
         if cov_reg is not None and not (math.isfinite(cov_reg) and cov_reg >= 0):
             raise ValueError(f"cov_reg must be >= 0 or None (automatic); got {cov_reg}")
+        if cov_reg_scale is not None and not (math.isfinite(cov_reg_scale) and cov_reg_scale >= 0):
+            raise ValueError(f"cov_reg_scale must be >= 0 or None; got {cov_reg_scale}")
+        if cov_reg is not None and cov_reg_scale is not None:
+            raise ValueError(f"give cov_reg (absolute λ, {cov_reg}) or cov_reg_scale (λ relative to the weight "
+                             f"variance, {cov_reg_scale}), not both")
         self.n_joints = int(n_joints)
         self.n_basis = int(n_basis)
         self.rhythmic = bool(rhythmic)
         self.width = float(width)
         self.ridge = float(ridge)
         self.cov_reg = cov_reg if cov_reg is None else float(cov_reg)
+        self.cov_reg_scale = cov_reg_scale if cov_reg_scale is None else float(cov_reg_scale)
         names = tuple(joint_names) if joint_names is not None else tuple(
             f"joint_{i + 1}" for i in range(self.n_joints))
         if len(names) != self.n_joints:
@@ -221,7 +231,9 @@ class ProMP:
         Measured on 7-joint sine families (3 and 30 demos, 5 via-points off the demos' span,
         noise 1e-6): 1 % left 2.6e-3..2e-2 rad via-point errors, 5 % 5.6e-4..5e-3 rad, while
         the prior std grew by ~1 %; no overshoot of the data range either way. Smaller noise
-        meets via-points more tightly. The value used is ``cov_reg_used``.
+        meets via-points more tightly. ``cov_reg_scale`` s instead: λ = s · max(mean(diag(cov_i w_i)),
+        (0.01 · y_range)²), the same two terms as a scale and a floor (the floor only for
+        identical demonstrations). The value used is ``cov_reg_used``.
 
         Contexts: (w_i, c_i) are modelled jointly Gaussian; the context block gets a ridge of
         1e-6 · mean(diag(cov_i c_i)) + 1e-12 so it can be conditioned on with few demos.
@@ -276,11 +288,13 @@ class ProMP:
         cov = np.cov(Z, rowvar=False, ddof=1) if N > 1 else np.zeros((Z.shape[1], Z.shape[1]))
         cov = np.atleast_2d(cov)
         D = d * n
-        if self.cov_reg is None:
-            y_range = float(np.max(y_max - y_min))
-            lam = 0.05 * float(np.mean(np.diag(cov)[:D])) + (0.01 * max(y_range, 1e-9)) ** 2
-        else:
+        y_range = float(np.max(y_max - y_min))
+        if self.cov_reg is not None:
             lam = self.cov_reg
+        elif self.cov_reg_scale is not None:
+            lam = self.cov_reg_scale * max(float(np.mean(np.diag(cov)[:D])), (0.01 * max(y_range, 1e-9)) ** 2)
+        else:
+            lam = 0.05 * float(np.mean(np.diag(cov)[:D])) + (0.01 * max(y_range, 1e-9)) ** 2
         cov[np.arange(D), np.arange(D)] += lam
         if C:
             lam_c = 1e-6 * float(np.mean(np.diag(cov)[D:])) + 1e-12
@@ -633,7 +647,7 @@ class ProMP:
         meta = {
             "format": _FORMAT, "format_version": _FORMAT_VERSION,
             "n_joints": self.n_joints, "n_basis": self.n_basis, "rhythmic": self.rhythmic,
-            "width": self.width, "ridge": self.ridge, "cov_reg": self.cov_reg,
+            "width": self.width, "ridge": self.ridge, "cov_reg": self.cov_reg, "cov_reg_scale": self.cov_reg_scale,
             "cov_reg_used": self.cov_reg_used, "context_dim": self.context_dim,
             "n_demos": self.n_demos, "joint_names": list(self.joint_names),
         }
@@ -678,6 +692,7 @@ class ProMP:
         try:
             out = cls(meta["n_joints"], meta["n_basis"], rhythmic=meta["rhythmic"],
                       width=meta["width"], ridge=meta["ridge"], cov_reg=meta["cov_reg"],
+                      cov_reg_scale=meta.get("cov_reg_scale"),
                       joint_names=meta["joint_names"])
             context_dim, n_demos, cov_reg_used = int(meta["context_dim"]), meta["n_demos"], meta["cov_reg_used"]
         except KeyError as exc:

@@ -16,7 +16,8 @@ from deepprompt_ros.model.phase import phase_basis
 from deepprompt_ros.training.config import BASIS_COV_REG_UNITS
 from deepprompt_ros.training.tensors import TensorData, fit_normalization
 
-__all__ = ["pca_basis", "init_basis_pca", "linear_map_condition", "fold_assignment", "cv_basis_hyperparameters"]
+__all__ = ["pca_basis", "init_basis_pca", "linear_map_condition", "fold_assignment", "cv_via_sets", "CV_CONDITIONINGS",
+           "cv_score", "cv_basis_hyperparameters"]
 
 
 def pca_basis(phi: np.ndarray, y: np.ndarray, latent_dim: int, cov_reg: float = 0.0,
@@ -113,6 +114,38 @@ def fold_assignment(n: int, folds: int, seed: int) -> np.ndarray:
     fold_of = np.empty(n, dtype=int)
     fold_of[np.random.default_rng(seed).permutation(n)] = np.arange(n) % folds
     return fold_of
+
+
+def cv_via_sets(n_points: int, n_demos: int, n_via: int = 5, draws: int = 2, seed: int = 0) -> list[list[np.ndarray]]:
+    """The conditionings a held-out demonstration is reconstructed from in the cross-validations of the
+    linear part (:func:`cv_basis_hyperparameters`) and of ProMP
+    (:func:`deepprompt_ros.baselines.promp_selection.select_promp`), as indices into ``n_points``
+    equally spaced phases: per demo ``[start], [start, end]`` and ``draws`` sets of ``n_via`` random
+    points (seeded by ``[seed, demo, draw]``). :data:`CV_CONDITIONINGS` names them."""
+    if n_points < 2 or not 1 <= n_via <= n_points or draws < 1:
+        raise ValueError(f"cv_via_sets needs n_points >= 2, 1 <= n_via <= n_points and draws >= 1; got "
+                         f"n_points={n_points}, n_via={n_via}, draws={draws}")
+    fixed = [np.array([0]), np.array([0, n_points - 1])]
+    return [fixed + [np.sort(np.random.default_rng([seed, i, r]).choice(n_points, int(n_via), replace=False))
+                     for r in range(draws)] for i in range(n_demos)]
+
+
+#: What the sets of :func:`cv_via_sets` are, in order (the random sets are averaged into one).
+CV_CONDITIONINGS = ("start", "start+end", "random via-points")
+
+
+def cv_score(errors: np.ndarray) -> tuple[float, tuple[float, float, float]]:
+    """The cross-validation error of one grid point from its per-set whole-trajectory MSEs ``errors``
+    (n_demos, 2 + draws) in the order of :func:`cv_via_sets`.
+
+    Returns (score, per-conditioning MSEs): the MSE of each conditioning of :data:`CV_CONDITIONINGS`
+    (mean over demos, and over the random sets), and as the score their geometric mean, so that each
+    conditioning weighs the same in relative terms: the start-only error, about the prior's spread, is
+    orders of magnitude above the error from 5 via-points and would decide an arithmetic mean alone.
+    """
+    e = np.asarray(errors, dtype=np.float64)
+    parts = (float(e[:, 0].mean()), float(e[:, 1].mean()), float(e[:, 2:].mean()))
+    return float(np.exp(np.mean(np.log(np.maximum(parts, 1e-300))))), parts
 
 
 def cv_basis_hyperparameters(ds: DemoDataset, n_points: int, n_basis: int, basis_width: float = 1.0,
