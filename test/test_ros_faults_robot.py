@@ -11,6 +11,9 @@ unchanged: ``stale_timeout`` 0.2 s, the shipped primitives) next to sim_bridge.
   line of the control process naming what was wrong, the running goal brakes to rest with
   ROBOT_STATE_STALE (its message names the refusal), no command carries a NaN, a new goal is refused
   with ROBOT_STATE_STALE naming the refusal, and a later good execution succeeds.
+* a robot that lags behind its commands (sim_bridge at a quarter of real time): a goal sent as soon as
+  the previous one ended starts from the last command, not from the measured state behind it (no
+  setpoint jump at the restart).
 
 Every command stream is checked with :func:`~deepprompt_ros.execution.limits.check_limits` over all
 consecutive commands (a late tick adds one period of motion, so a skipped tick is no excuse for a jump).
@@ -28,6 +31,7 @@ from deepprompt_msgs.msg import ResultCode
 from deepprompt_msgs.srv import Condition
 from rclpy.action import ActionClient
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 
 from deepprompt_ros.execution.limits import check_limits
@@ -366,3 +370,68 @@ def test_bad_joint_states_are_refused_the_goal_brakes_and_the_node_serves_on(cli
         assert server.running() and "Traceback" not in server.output(), server.output_tail()
     finally:
         client.fake.bad, client.fake.on = None, False
+
+
+# ------------------------------------------------------------------------------------------------
+# a robot that lags behind its commands
+# ------------------------------------------------------------------------------------------------
+#: simulated seconds per wall-clock second of the lagging sim_bridge: its joints move at no more than a
+#: quarter of the velocity limits in wall time, so they fall behind the commands of a fast motion (as a
+#: simulation that cannot keep up does) and catch up only seconds after the commands stop
+SLOW_FACTOR = 0.25
+
+
+def test_a_goal_right_after_another_continues_from_the_last_command_while_the_robot_lags(client, sim, server):
+    """A goal sent as soon as the previous one's result came (within the shipped stale_timeout of its last
+    command) starts from that command, not from the measured state the lagging robot is at: the commands
+    of both goals, the restart included, keep the limits pair by pair (no setpoint jump back to the
+    robot). A restart later than stale_timeout (a busy machine delayed this client) starts from the
+    measured state by design; it is sent again, at most three times."""
+    client.fake.on = False
+    sim.stop()
+    sim.proc = NodeProcess.start_module("deepprompt_ros.ros.sim_bridge", sim.env, params={
+        "camera.enabled": False, "publish_clock": False, "rate_hz": SIM_RATE_HZ, "real_time_factor": SLOW_FACTOR})
+    js = JointStateTap(client, "joint_states")
+    try:
+        assert client.wait_for(lambda: js.take() or js.raw, 30), sim.proc.output_tail()
+        for attempt in range(3):
+            back = condition(client)  # the reach run backward: it starts where the first goal ends
+            fut = start_when_served(client, [], duration=1.2)  # about the fastest the velocity limits allow
+            res = wait_result(client, fut)
+            js.take()
+            fut_b = client.ac.send_goal_async(Execute.Goal(handle=back, duration=1.2, reverse=True))
+            if res.code.value != ResultCode.SUCCESS:  # the slow simulation paused past stale_timeout
+                print(f"first goal ended {res.message}, sent again")
+                wait_result(client, send_accepted(client, fut_b), 20.0)
+                continue
+            m = deserialize_message(js.raw[-1], JointState)  # the robot's state when the result came
+            robot = conv.reorder_joints(m.name, m.position, NAMES)
+            del js.raw[:-1]
+            res_b = wait_result(client, send_accepted(client, fut_b), 20.0)
+            stamps, q, qd = commands(client)
+            k = int(np.argmax(np.diff(stamps)))  # the restart: the longest pause between two commands
+            gap = (stamps[k + 1] - stamps[k]) * 1e-9
+            if res_b.code.value == ResultCode.SUCCESS and gap < SHIPPED.stale_timeout - 0.02:
+                break
+            print(f"second goal {res_b.message} {gap:.3f} s after the first goal's last command, sent again")
+        else:
+            pytest.fail("no pair of goals ran back to back within stale_timeout in 3 attempts")
+        assert_stream_ok(stamps, q, qd)  # both goals, every consecutive pair, the restart included
+        lag = float(np.abs(robot - q[k]).max())
+        # far more than one period at the velocity limit: a start from the measured state would jump
+        assert lag > 10 * LIMITS.max_velocity.max() * DT, f"the robot lagged by {lag:.4f} rad only"
+        np.testing.assert_array_equal(q[k + 1], q[k])  # the new stream starts at the last command, at rest
+        assert np.all(qd[k] == 0.0) and np.all(qd[k + 1] == 0.0)
+        print(f"restart {gap * 1e3:.0f} ms after the last command, the robot {lag:.3f} rad behind it")
+    finally:
+        js.close()
+        sim.stop()
+
+
+def send_accepted(client, fut):
+    """The result future of a goal whose acceptance ``fut`` is pending."""
+    assert client.wait_for(lambda: tap_and(client, fut.done), 10)
+    gh = fut.result()
+    assert gh.accepted
+    return gh.get_result_async()
+

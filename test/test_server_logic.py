@@ -492,7 +492,7 @@ def test_goal_runs_from_measured_state_to_rest_at_the_end_within_limits(core):
     start = plan.reference.positions([0.0])[0] + 0.05  # off the start: approach first
     run = Run(start)
     goal = ExecutionGoal(plan)
-    run.ctl.start_goal(goal, run.measured)
+    run.ctl.start_goal(goal, run.measured, run.t)
     stages = set()
     run.until(lambda: (stages.add(goal.stage), goal.done.is_set())[1])
     assert Stage.APPROACH in stages and Stage.RUN in stages
@@ -511,9 +511,9 @@ def test_preempting_goal_splices_without_a_jump(core):
     a, b = plan_for(core, 0.03, 3.0), plan_for(core, -0.03, 2.5, 0.4)
     run = Run(a.reference.positions([0.0])[0])
     ga, gb = ExecutionGoal(a), ExecutionGoal(b)
-    run.ctl.start_goal(ga, run.measured)
+    run.ctl.start_goal(ga, run.measured, run.t)
     run.until(lambda: ga.progress.phase > 0.4)
-    run.ctl.start_goal(gb, run.measured)
+    run.ctl.start_goal(gb, run.measured, run.t)
     run.until(lambda: gb.done.is_set())
     assert ga.outcome.code == Code.PREEMPTED and gb.outcome.code == Code.SUCCESS
     rep = run.report()  # velocity/acceleration/jerk limits hold across the splice
@@ -525,7 +525,7 @@ def test_cancel_brakes_to_rest_within_limits(core):
     plan = plan_for(core, 0.03, 3.0)
     run = Run(plan.reference.positions([0.0])[0])
     goal = ExecutionGoal(plan)
-    run.ctl.start_goal(goal, run.measured)
+    run.ctl.start_goal(goal, run.measured, run.t)
     run.until(lambda: goal.progress.phase > 0.5)
     speed = np.abs(run.qd[-1]).max()
     assert speed > 0.01
@@ -542,7 +542,7 @@ def test_set_rate_while_moving_keeps_the_stream_continuous_and_zero_holds(core):
     plan = plan_for(core, 0.03, 3.0)
     run = Run(plan.reference.positions([0.0])[0])
     goal = ExecutionGoal(plan)
-    run.ctl.start_goal(goal, run.measured)
+    run.ctl.start_goal(goal, run.measured, run.t)
     run.until(lambda: goal.progress.phase > 0.3)
     run.ctl.set_rate(goal, 0.0)
     for _ in range(1500):
@@ -562,7 +562,7 @@ def test_stale_joint_states_stop_the_stream_with_robot_state_stale(core):
     plan = plan_for(core, 0.03, 3.0)
     run = Run(plan.reference.positions([0.0])[0])
     goal = ExecutionGoal(plan)
-    run.ctl.start_goal(goal, run.measured)
+    run.ctl.start_goal(goal, run.measured, run.t)
     run.until(lambda: goal.progress.phase > 0.3)
     run.stale = True
     run.until(lambda: goal.done.is_set(), 5000)
@@ -578,7 +578,7 @@ def test_tracking_error_bound_aborts_with_limit_violation(core):
     q0 = plan.reference.positions([0.0])[0]
     goal = ExecutionGoal(plan)
     t = 0.0
-    ctl.start_goal(goal, MeasuredState(q0, None, t))
+    ctl.start_goal(goal, MeasuredState(q0, None, t), t)
     for _ in range(20000):  # the "robot" never moves
         ctl.pop_due(MeasuredState(q0, None, t), t)
         ctl.check_faults(MeasuredState(q0, None, t), t)
@@ -595,7 +595,7 @@ def test_start_outside_limits_is_refused(core):
     goal = ExecutionGoal(plan)
     q = SPEC.home.copy()
     q[1] = SPEC.upper[1] + 0.1
-    ctl.start_goal(goal, MeasuredState(q, None, 0.0))
+    ctl.start_goal(goal, MeasuredState(q, None, 0.0), 0.0)
     assert goal.outcome.code == Code.LIMIT_VIOLATION and "joint_2" in goal.outcome.message
 
 
@@ -603,7 +603,7 @@ def test_trajectory_snapshots_and_brake_tail_make_valid_controller_messages(core
     plan = plan_for(core, 0.03, 3.0)
     run = Run(plan.reference.positions([0.0])[0])
     goal = ExecutionGoal(plan)
-    run.ctl.start_goal(goal, run.measured)
+    run.ctl.start_goal(goal, run.measured, run.t)
     run.until(lambda: goal.progress.phase > 0.5)
     snap = run.ctl.snapshot(100.0, 3)
     assert snap.times.shape == (3,) and np.all(np.diff(snap.times) > 0) and snap.times[0] > 0
@@ -629,7 +629,7 @@ def test_reverse_runs_the_primitive_backwards(core):
     assert plan.start_phase == 1.0 and plan.end_phase == 0.0
     run = Run(plan.reference.positions([1.0])[0])
     goal = ExecutionGoal(plan)
-    run.ctl.start_goal(goal, run.measured)
+    run.ctl.start_goal(goal, run.measured, run.t)
     phases = []
     run.until(lambda: (phases.append(goal.progress.phase), goal.done.is_set())[1])
     assert goal.outcome.code == Code.SUCCESS and goal.outcome.final_phase == 0.0
@@ -648,7 +648,7 @@ def test_rhythmic_goal_runs_its_cycles_without_a_seam(tmp_path):
     np.testing.assert_allclose(ref.positions([0.0]), ref.positions([1.0]), atol=1e-12)  # periodic
     run = Run(ref.positions([0.0])[0])
     goal = ExecutionGoal(plan)
-    run.ctl.start_goal(goal, run.measured)
+    run.ctl.start_goal(goal, run.measured, run.t)
     cycles = set()
     run.until(lambda: (cycles.add(goal.progress.cycle), goal.done.is_set())[1])
     assert goal.outcome.code == Code.SUCCESS and goal.outcome.cycles_completed == 2

@@ -176,7 +176,8 @@ class ExecutionController:
                                            0.49 * (np.asarray(limits.upper) - np.asarray(limits.lower))))
         self.buffer: collections.deque[Sample] = collections.deque()
         self.active: _Active | None = None
-        self.last_command: np.ndarray | None = None
+        self.last_command: np.ndarray | None = None  #: position of the sample published last
+        self._published_at = -math.inf                #: its ``now`` (time.monotonic())
         self.tracking_error = 0.0
         self._compared: MeasuredState | None = None
         self.errors = 0          # ticks on which ruckig rejected the input (braked instead)
@@ -194,10 +195,20 @@ class ExecutionController:
         return a.goal if a is not None else None
 
     # ------------------------------------------------------------------ commands (loop thread)
-    def start_goal(self, goal: ExecutionGoal, measured: MeasuredState | None) -> None:
-        """Take over ``goal``: splice onto the current stream, or start from the measured state (a
-        goal accepted before the running one ends PREEMPTED at once, see :class:`ExecutionGoal`)."""
-        finishes = []
+    def start_goal(self, goal: ExecutionGoal, measured: MeasuredState | None, now: float) -> None:
+        """Take over ``goal`` at time ``now`` (time.monotonic(), as ``measured.stamp``).
+
+        Where the new goal's commands start from (as ros2_control's JointTrajectoryController
+        starts a new trajectory from its last command while it holds one):
+
+        * the stream runs (samples are buffered): it splices onto the last computed sample;
+        * the stream ended at most ``stale_timeout`` before ``now``: from its last published
+          command, at rest (a stream ends at rest: velocity and acceleration 0) -- the robot's
+          controller still holds that command, and a robot lagging behind it must not see its
+          setpoint jump back to where it was measured;
+        * else (first goal, long idle, after :meth:`abort`): from the measured position at rest.
+
+        A goal accepted before the running one ends PREEMPTED at once (see :class:`ExecutionGoal`)."""
         if self.active is not None and goal.order is not None and self.active.goal.order is not None \
                 and goal.order < self.active.goal.order:
             self._deliver_now([(goal, Outcome(Code.PREEMPTED, "preempted by a newer Execute goal, which started "
@@ -211,38 +222,30 @@ class ExecutionController:
                 msg = f"{msg}; a newer Execute goal took over while braking (phase {a.clock.x:.4f})"
             else:
                 code, msg = Code.PREEMPTED, "preempted by a newer Execute goal"
-            finishes.append((old, Outcome(code, msg, old.max_tracking_error, a.clock.x, a.clock.sample.cycle)))
             self.active = None
-        if self.buffer or (self.streamer.started and not self.streamer.at_rest()):
+            # delivered once its last sample is published
+            self._attach([(old, Outcome(code, msg, old.max_tracking_error, a.clock.x, a.clock.sample.cycle))])
+        if self.buffer:
             # splice: continue from the last computed sample (position, velocity, acceleration)
             if self.streamer.stopping:
                 self.streamer.resume()
         else:
-            if measured is None:
-                finishes.append((goal, Outcome(Code.ROBOT_STATE_STALE, "no joint_states received", 0.0,
-                                               goal.plan.start_phase, 0)))
-                self._deliver_now(finishes)
+            refusal = self._refuse_start(goal, measured)
+            if refusal is not None:
+                self._deliver_now([(goal, refusal)])
                 return
-            q = np.clip(measured.q, self.limits.lower, self.limits.upper)
-            out = np.abs(q - measured.q)
-            if out.max() > 1e-3:
-                j = int(np.argmax(out))
-                finishes.append((goal, Outcome(
-                    Code.LIMIT_VIOLATION, f"measured position of {self.limits.names[j]} is {measured.q[j]:.4g} rad, "
-                    f"outside its limits [{self.limits.lower[j]:.4g}, {self.limits.upper[j]:.4g}] rad", 0.0,
-                    goal.plan.start_phase, 0)))
-                self._deliver_now(finishes)
-                return
+            if self.last_command is not None and now - self._published_at <= self.config.stale_timeout:
+                q = self.last_command.copy()
+            else:
+                q = np.clip(measured.q, self.limits.lower, self.limits.upper)
             try:
                 self.streamer.start(q)
             except ValueError as exc:
-                finishes.append((goal, Outcome(Code.LIMIT_VIOLATION, str(exc), 0.0, goal.plan.start_phase, 0)))
-                self._deliver_now(finishes)
+                self._deliver_now([(goal, Outcome(Code.LIMIT_VIOLATION, str(exc), 0.0, goal.plan.start_phase, 0))])
                 return
             zero = np.zeros(self.limits.n_joints)
-            hold = Sample(q.copy(), zero, zero, None, None, ())
+            hold = Sample(q, zero, zero, None, None, ())  # the look-ahead starts as a hold of the start
             self.buffer.extend([hold] * self.n_ahead)
-            self.last_command = q.copy()
         act = _Active(goal, self.dt)
         self._compared, self.tracking_error = None, 0.0
         q_now = np.asarray(self.streamer.state[0])
@@ -250,8 +253,19 @@ class ExecutionController:
             act.stage = Stage.RUN
         goal.stage = act.stage
         self.active = act
-        if finishes:
-            self._attach(finishes)
+
+    def _refuse_start(self, goal: ExecutionGoal, measured: MeasuredState | None) -> Outcome | None:
+        """Why a stream cannot start for ``goal`` from rest (no robot state, a measured position
+        outside the limits), or None."""
+        if measured is None:
+            return Outcome(Code.ROBOT_STATE_STALE, "no joint_states received", 0.0, goal.plan.start_phase, 0)
+        out = np.abs(np.clip(measured.q, self.limits.lower, self.limits.upper) - measured.q)
+        if out.max() > 1e-3:
+            j = int(np.argmax(out))
+            return Outcome(Code.LIMIT_VIOLATION, f"measured position of {self.limits.names[j]} is "
+                           f"{measured.q[j]:.4g} rad, outside its limits [{self.limits.lower[j]:.4g}, "
+                           f"{self.limits.upper[j]:.4g}] rad", 0.0, goal.plan.start_phase, 0)
+        return None
 
     def cancel(self, goal: ExecutionGoal) -> None:
         a = self.active
@@ -291,7 +305,7 @@ class ExecutionController:
         if not self.buffer:
             return None
         s = self.buffer.popleft()
-        self.last_command = s.q
+        self.last_command, self._published_at = s.q, now
         g = s.goal
         if g is not None:
             if measured is not None and measured is not self._compared:

@@ -243,7 +243,7 @@ class StreamLoop:
         while self._commands:
             match self._commands.popleft():
                 case _Start(goal):
-                    ctl.start_goal(goal, measured)
+                    ctl.start_goal(goal, measured, now)
                 case _Cancel(goal):
                     ctl.cancel(goal)
                 case _SetRate(goal, rate):
