@@ -1,11 +1,15 @@
 """The command stream across goals (deepprompt_ros.execution: controller, stream_loop), without ROS:
 where a new stream starts (from the last command while the robot's controller still holds it, from
 the measured state after an idle time longer than stale_timeout), against a robot that lags behind
-its commands as a slow simulation does.
+its commands as a slow simulation does; and a tick that raises: every goal waiting in the stream
+ends with a result code, and the loop serves on.
 
 Plans are built directly from a grid (ExecutionReference) on a two-joint arm; Ruckig is the real one.
 """
 from __future__ import annotations
+
+import time
+from dataclasses import replace as dataclass_replace
 
 import numpy as np
 
@@ -14,6 +18,7 @@ from deepprompt_ros.execution.controller import ExecutionController, ExecutionGo
 from deepprompt_ros.execution.limits import JointLimits, check_limits
 from deepprompt_ros.execution.plan import ExecutionPlan, ExecutionReference
 from deepprompt_ros.execution.settings import LoopSettings
+from deepprompt_ros.execution.stream_loop import StreamLoop
 
 DT = 1e-3
 LIMITS = JointLimits(lower=[-2.0, -2.0], upper=[2.0, 2.0], max_velocity=[1.0, 1.5], max_acceleration=[4.0, 5.0],
@@ -123,3 +128,97 @@ def test_the_first_goal_starts_from_the_measured_state():
     assert run.run(ExecutionGoal(plan([0.3, -0.2], [0.5, 0.0], 0.5))).code == Code.SUCCESS
     np.testing.assert_allclose(run.q[0], [0.3, -0.2], atol=1e-12)
     assert run.report().ok()
+
+
+# ------------------------------------------------------------------------------------------------
+# a tick that raises: every goal still waiting ends with a result
+# ------------------------------------------------------------------------------------------------
+def nan_plan() -> ExecutionPlan:
+    """A plan whose grid is NaN: the streamer refuses its reference (ValueError) in the tick that
+    first tracks it (the server refuses such a handle before the loop; here it stands for any
+    failure inside a tick)."""
+    return ExecutionPlan("bad", "bad", ExecutionReference(np.full((11, 2), np.nan), periodic=False), 1.0, False, 1,
+                         False)
+
+
+class PerfectRobot:
+    """A StreamLoop whose robot reports every command it is given; ticks are driven by hand
+    (:meth:`StreamLoop.timer_tick`, the 'timer' mode) or by the loop's own thread."""
+
+    def __init__(self, q0):
+        self.errors = []
+        self.ctl = ExecutionController(LIMITS, DT, CFG)
+        self.loop = StreamLoop(self.ctl, CFG, publish_command=self._publish, on_error=self.errors.append)
+        self.loop.update_measured(np.array(q0, float))
+        self.q = []
+
+    def _publish(self, q, qd, qdd, due):
+        self.q.append(q)
+        self.loop.update_measured(q.copy())
+
+    def until(self, pred, max_ticks=20000):
+        for _ in range(max_ticks):
+            self.loop.timer_tick()
+            if pred():
+                return
+        raise AssertionError("condition not reached")
+
+
+def test_a_tick_that_raises_after_a_preempt_ends_the_preempted_goal_and_the_failed_one():
+    run = PerfectRobot([0.0, 0.0])
+    a = ExecutionGoal(plan([0.0, 0.0], [0.6, -0.6], 1.0))
+    run.loop.execute(a)
+    run.until(lambda: a.progress.phase > 0.3)
+    b = run.loop.execute(ExecutionGoal(nan_plan()))
+    run.loop.timer_tick()  # b splices on (a is preempted), then its first sample raises
+    assert a.done.is_set() and b.done.is_set(), "a goal was left without a result"
+    assert a.outcome.code == Code.PREEMPTED, a.outcome
+    assert "its last commands were not published" in a.outcome.message and "ValueError" in a.outcome.message
+    assert b.outcome.code == Code.INTERNAL_ERROR and "control loop failure" in b.outcome.message, b.outcome
+    assert any("control loop tick failed" in e for e in run.errors), run.errors
+    assert run.ctl.idle  # nothing of the cut stream is published later
+    # the loop serves on: a new goal starts from the measured state and runs to its end
+    n = len(run.q)
+    c = run.loop.execute(ExecutionGoal(plan(run.q[-1], [0.0, 0.0], 1.0)))
+    run.until(lambda: c.done.is_set())
+    assert c.outcome.code == Code.SUCCESS, c.outcome
+    np.testing.assert_array_equal(run.q[n], run.q[n - 1])
+
+
+def test_a_tick_that_raises_while_taking_over_ends_both_goals():
+    run = PerfectRobot([0.0, 0.0])
+    a = run.loop.execute(ExecutionGoal(plan([0.0, 0.0], [0.6, -0.6], 1.0)))
+    run.until(lambda: a.progress.phase > 0.3)
+    bad = ExecutionGoal(dataclass_replace(plan([0.0, 0.0], [0.1, 0.1]), duration=0.0))  # its clock raises
+    run.loop.execute(bad)
+    run.loop.timer_tick()
+    assert a.outcome.code == Code.PREEMPTED, a.outcome
+    assert bad.outcome.code == Code.INTERNAL_ERROR and "duration/period T" in bad.outcome.message, bad.outcome
+
+
+def test_a_success_not_yet_published_when_a_tick_raises_ends_internal_error():
+    run = PerfectRobot([0.0, 0.0])
+    a = run.loop.execute(ExecutionGoal(plan([0.0, 0.0], [0.3, 0.2], 0.5)))
+    run.until(lambda: run.ctl.active is None)  # the last sample computed, the look-ahead not yet published
+    assert not a.done.is_set()
+    b = run.loop.execute(ExecutionGoal(nan_plan()))
+    run.loop.timer_tick()
+    assert a.outcome.code == Code.INTERNAL_ERROR and "end of the motion was not published" in a.outcome.message
+    assert b.outcome.code == Code.INTERNAL_ERROR
+
+
+def test_the_control_thread_survives_a_tick_that_raises_and_every_goal_gets_a_result():
+    run = PerfectRobot([0.0, 0.0])
+    run.loop.start(threaded=True)
+    try:
+        a = run.loop.execute(ExecutionGoal(plan([0.0, 0.0], [0.6, -0.6], 1.0)))
+        deadline = time.monotonic() + 10
+        while a.progress.phase < 0.3 and time.monotonic() < deadline:
+            time.sleep(0.005)
+        b = run.loop.execute(ExecutionGoal(nan_plan()))
+        assert a.done.wait(5) and b.done.wait(5), "a goal was left without a result"
+        assert (a.outcome.code, b.outcome.code) == (Code.PREEMPTED, Code.INTERNAL_ERROR), (a.outcome, b.outcome)
+        c = run.loop.execute(ExecutionGoal(plan(run.q[-1], [0.0, 0.0], 0.8)))
+        assert c.done.wait(10) and c.outcome.code == Code.SUCCESS, c.outcome
+    finally:
+        run.loop.shutdown()

@@ -178,6 +178,7 @@ class ExecutionController:
         self.active: _Active | None = None
         self.last_command: np.ndarray | None = None  #: position of the sample published last
         self._published_at = -math.inf                #: its ``now`` (time.monotonic())
+        self._starting: ExecutionGoal | None = None    #: the goal start_goal is taking over
         self.tracking_error = 0.0
         self._compared: MeasuredState | None = None
         self.errors = 0          # ticks on which ruckig rejected the input (braked instead)
@@ -214,6 +215,7 @@ class ExecutionController:
             self._deliver_now([(goal, Outcome(Code.PREEMPTED, "preempted by a newer Execute goal, which started "
                                               "first", 0.0, goal.plan.start_phase, 0))])
             return
+        self._starting = goal
         if self.active is not None:
             a, old = self.active, self.active.goal
             if a.stage == Stage.STOPPING and a.stop_reason is not None:
@@ -232,6 +234,7 @@ class ExecutionController:
         else:
             refusal = self._refuse_start(goal, measured)
             if refusal is not None:
+                self._starting = None
                 self._deliver_now([(goal, refusal)])
                 return
             if self.last_command is not None and now - self._published_at <= self.config.stale_timeout:
@@ -241,6 +244,7 @@ class ExecutionController:
             try:
                 self.streamer.start(q)
             except ValueError as exc:
+                self._starting = None
                 self._deliver_now([(goal, Outcome(Code.LIMIT_VIOLATION, str(exc), 0.0, goal.plan.start_phase, 0))])
                 return
             zero = np.zeros(self.limits.n_joints)
@@ -253,6 +257,7 @@ class ExecutionController:
             act.stage = Stage.RUN
         goal.stage = act.stage
         self.active = act
+        self._starting = None
 
     def _refuse_start(self, goal: ExecutionGoal, measured: MeasuredState | None) -> Outcome | None:
         """Why a stream cannot start for ``goal`` from rest (no robot state, a measured position
@@ -266,6 +271,36 @@ class ExecutionController:
                            f"{measured.q[j]:.4g} rad, outside its limits [{self.limits.lower[j]:.4g}, "
                            f"{self.limits.upper[j]:.4g}] rad", 0.0, goal.plan.start_phase, 0)
         return None
+
+    def abort(self, reason: str) -> None:
+        """The stream is cut where it is (the control loop failed: ``reason``): nothing buffered is
+        published and every goal still waiting ends now. The running goal and a goal being taken
+        over end with INTERNAL_ERROR, as does a goal whose SUCCESS was waiting for its last samples
+        to be published; a goal that had already ended otherwise (PREEMPTED, CANCELED, a fault)
+        keeps its code, its message saying that its last commands were not published. The next goal
+        starts from the measured state."""
+        a = self.active
+        running = [g for g in (a.goal if a is not None else None, self._starting) if g is not None]
+        pending = [f for s in self.buffer for f in s.finishes]
+        self.buffer.clear()
+        self.active, self._starting = None, None
+        self.last_command, self._published_at = None, -math.inf
+        failure = f"control loop failure: {reason}"
+        finishes = []
+        for goal, outcome in pending:
+            if outcome.code == Code.SUCCESS:
+                outcome = outcome._replace(code=Code.INTERNAL_ERROR,
+                                           message=f"{failure}; the end of the motion was not published")
+            else:
+                outcome = outcome._replace(message=f"{outcome.message}; then a {failure} (its last commands "
+                                                   "were not published)")
+            finishes.append((goal, outcome))
+        for goal in running:
+            phase, cycle = (a.clock.x, a.clock.sample.cycle) if a is not None and goal is a.goal else \
+                (goal.plan.start_phase, 0)
+            finishes.append((goal, Outcome(Code.INTERNAL_ERROR, f"{failure}; the command stream stopped there",
+                                           goal.max_tracking_error, phase, cycle)))
+        self._deliver_now(finishes)
 
     def cancel(self, goal: ExecutionGoal) -> None:
         a = self.active

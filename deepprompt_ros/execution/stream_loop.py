@@ -34,7 +34,7 @@ from typing import Callable
 import numpy as np
 
 from deepprompt_ros.common.results import Code, RequestError
-from deepprompt_ros.execution.controller import (ExecutionController, ExecutionGoal, MeasuredState, Outcome, Snapshot,
+from deepprompt_ros.execution.controller import (ExecutionController, ExecutionGoal, MeasuredState, Snapshot,
                                                   Stage)
 from deepprompt_ros.execution.settings import LoopSettings
 
@@ -292,7 +292,7 @@ class StreamLoop:
             self.poll()
             return
         t0 = time.perf_counter()
-        self.tick()
+        self._guarded_tick(None)
         self.stats.max_tick_s = max(self.stats.max_tick_s, time.perf_counter() - t0)
 
     def _run(self) -> None:
@@ -322,22 +322,19 @@ class StreamLoop:
                     pass
             t0 = perf()
             c0 = time.thread_time()
-            try:
-                self.tick(self._next + dt)
-            except Exception as exc:  # never let the control thread die
-                self._on_error(f"control loop tick failed: {exc!r}")
-                self._emergency_stop(exc)
+            self._guarded_tick(self._next + dt)
             self.stats.max_tick_s = max(self.stats.max_tick_s, perf() - t0)
             self.stats.cpu_s += time.thread_time() - c0
             self.stats.work_ticks += 1
 
-    def _emergency_stop(self, exc: Exception) -> None:
-        a = self.ctl.active
-        if a is not None:
-            a.goal._finish(Outcome(Code.INTERNAL_ERROR, f"control loop failure: {exc!r}",
-                                   a.goal.max_tracking_error, a.clock.x, a.clock.sample.cycle))
-            self.ctl.active = None
-        self.ctl.buffer.clear()
+    def _guarded_tick(self, next_due: float | None) -> None:
+        """:meth:`tick`; if it raises, the error is reported, the stream is cut and every goal waiting
+        in it ends (:meth:`ExecutionController.abort`): the loop itself keeps running."""
+        try:
+            self.tick(next_due)
+        except Exception as exc:  # never let the control thread (or the timer's executor) die
+            self._on_error(f"control loop tick failed: {exc!r}")
+            self.ctl.abort(repr(exc))
 
     def _traj_worker(self) -> None:
         self._thread_setup("jtc_publisher", 0)
