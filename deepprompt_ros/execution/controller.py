@@ -23,6 +23,10 @@ the clock held, only when farther than ``approach_tolerance``), RUN (clock runni
 (clock done, converging onto the end state), STOPPING (cancel, stale joint_states, tracking error:
 every joint brakes time-optimally within its limits), then the goal's outcome is delivered when
 its last sample has been published.
+
+Over 400 lines: one state machine whose transitions (start, splice, restart from the last command,
+cancel, abort, the per-tick stages) all read and change the same buffer, streamer state and
+pending outcomes, so they are kept in one class.
 """
 from __future__ import annotations
 
