@@ -60,6 +60,7 @@ from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from deepprompt_ros import paths
 from deepprompt_ros.common.params import ConfigError
@@ -86,6 +87,12 @@ __all__ = ["PrimitiveServer", "main"]
 #: every client at each state change of any goal) list every goal of the last 15 minutes, which a
 #: planner that replans a few times a second grows to thousands of entries per message.
 RESULT_TIMEOUT = 60
+
+#: QoS of the five services and of the Execute action's goal, cancel and result services: reliable,
+#: keep-last 100 instead of rmw's 10, because a keep-last reader drops the oldest unanswered requests
+#: of a burst (of 80 Condition requests sent at once, 10 to 20 were answered with depth 10).
+SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
 
 
 class PrimitiveServer(Node):
@@ -155,14 +162,15 @@ class PrimitiveServer(Node):
         for srv, name, fn in ((Condition, "condition", self._condition), (Blend, "blend", self._blend),
                               (Sample, "sample", self._sample), (ListPrimitives, "list_primitives", self._list),
                               (SetPhaseRate, "set_phase_rate", self._set_rate)):
-            create_service(srv, f"~/{name}", self._guard(name, fn))
+            create_service(srv, f"~/{name}", self._guard(name, fn), qos_profile=SERVICE_QOS)
         # goals numbered as they are accepted: a newer goal preempts an older one, whichever plan is ready first
         self._accepted, self._accept_order = itertools.count(1), {}
         self._action = ActionServer(self, Execute, "~/execute", self._execute, callback_group=ReentrantCallbackGroup(),
                                     goal_callback=lambda goal: GoalResponse.ACCEPT,
                                     handle_accepted_callback=self._on_accepted,
                                     cancel_callback=lambda goal: CancelResponse.ACCEPT,
-                                    result_timeout=RESULT_TIMEOUT)
+                                    goal_service_qos_profile=SERVICE_QOS, result_service_qos_profile=SERVICE_QOS,
+                                    cancel_service_qos_profile=SERVICE_QOS, result_timeout=RESULT_TIMEOUT)
         if cfg.loop_mode == "timer":
             self.create_timer(1.0 / rate, self.loop.timer_tick, callback_group=MutuallyExclusiveCallbackGroup())
         self.gc = realtime.GcMonitor()

@@ -51,11 +51,13 @@ class ServiceThread:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
-    def create_service(self, srv_type, srv_name: str, callback):
-        """``node.create_service`` for this thread; callback(request, response) -> response."""
+    def create_service(self, srv_type, srv_name: str, callback, *, qos_profile=None):
+        """``node.create_service`` for this thread; callback(request, response) -> response;
+        ``qos_profile``: an rclpy QoSProfile (None: rclpy's default for services)."""
         if self._thread is not None:
             raise RuntimeError("services are created before ServiceThread.start()")
-        srv = self._node.create_service(srv_type, srv_name, callback, callback_group=self._group)
+        qos = {} if qos_profile is None else {"qos_profile": qos_profile}
+        srv = self._node.create_service(srv_type, srv_name, callback, callback_group=self._group, **qos)
         self._services.append(srv)
         return srv
 
