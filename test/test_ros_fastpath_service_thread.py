@@ -3,6 +3,7 @@ answered by their own thread while the node's executor never dispatches them; a 
 exception is logged and the thread keeps serving; the reception-to-taking time is reported; stop
 ends the thread. One in-process node on an isolated network (LOCALHOST discovery, random domain)."""
 import threading
+import time
 
 import pytest
 from std_srvs.srv import SetBool, Trigger
@@ -38,15 +39,25 @@ def test_requests_are_answered_by_the_service_thread(client):
     srv.start()
     with pytest.raises(RuntimeError, match="before ServiceThread.start"):
         srv.create_service(Trigger, "~/late", trigger)
+    rtt = []  # s of each call, from before its request to after its answer (or its timeout)
+
+    def timed(*args, **kwargs):
+        t0 = time.monotonic()
+        try:
+            return client.call(*args, **kwargs)
+        finally:
+            rtt.append(time.monotonic() - t0)
+
     try:
-        r = client.call(SetBool, "/service_thread_test/set", SetBool.Request(data=False))
+        r = timed(SetBool, "/service_thread_test/set", SetBool.Request(data=False))
         assert r.success and r.message == "done"
-        assert client.call(Trigger, "/service_thread_test/trigger").success
+        assert timed(Trigger, "/service_thread_test/trigger").success
         with pytest.raises(TimeoutError):  # the callback raised: no response, a warning
-            client.call(SetBool, "/service_thread_test/set", SetBool.Request(data=True), timeout=1.0)
-        assert client.call(SetBool, "/service_thread_test/set", SetBool.Request(data=False)).success  # still serving
+            timed(SetBool, "/service_thread_test/set", SetBool.Request(data=True), timeout=1.0)
+        assert timed(SetBool, "/service_thread_test/set", SetBool.Request(data=False)).success  # still serving
         assert threads == ["test_services"] * 4  # never the executor (the test's own thread)
-        assert len(queued) == 4 and all(q >= 0.0 for q in queued)
+        # one reception-to-taking time per request, each part of that request's round trip
+        assert len(queued) == 4 and all(0.0 <= q <= t for q, t in zip(queued, rtt)), (queued, rtt)
         services = dict(client.node.get_service_names_and_types_by_node("service_thread_test", "/"))
         assert services["/service_thread_test/set"] == ["std_srvs/srv/SetBool"]
         assert services["/service_thread_test/trigger"] == ["std_srvs/srv/Trigger"]
