@@ -407,8 +407,9 @@ def test_benchmark_quick_mode_runs_and_reports_every_metric(setup):
         # every call of the client answered, Condition and ListPrimitives alike
         for srv in ("srv", "srv_list"):
             assert int(table[f"{srv}_calls{mode}"]) >= 20 and int(table[f"{srv}_failures{mode}"]) == 0
-        # the server's log gave its collections (the figures are required, not defaulted)
-        assert int(table[f"server_gc_count{mode}"]) >= 0 and float(table[f"server_gc_max_ms{mode}"]) < 50.0
+        # the server's log gave its collections since its start-up objects were frozen (the figures are
+        # required, not defaulted): thousands of calls allocate, so the interpreter collected, each time briefly
+        assert int(table[f"server_gc_count{mode}"]) > 0 and 0 < float(table[f"server_gc_max_ms{mode}"]) < 50.0, table
         # the floor in the same run: the near-empty service's round trip, a bare 1 kHz loop beside the stream
         # (about 2 s of intervals), and the ratios to them as defined
         assert float(last[f"srv_list_p50_ms{mode}"]) > 0
@@ -429,15 +430,10 @@ def test_benchmark_quick_mode_runs_and_reports_every_metric(setup):
         assert int(table[f"executions_refused_ok{mode}"]) == refused
         # every command of both phases within the limits, each against the one before it, across gaps too
         assert int(table[f"commands_checked{mode}"]) > 2000
-        # a stream that starts again from the measured state after a stop at rest may begin away from the
-        # last command when the robot had not reached it (a paused or lagging sim): make bench counts such
-        # restarts in limit_violations (start_jumps); this smoke run requires every other command in limits
-        # and the restarts to stay within what a lagging robot explains (< 0.2 rad)
-        assert int(last[f"limit_violations{mode}"]) - int(table[f"start_jumps{mode}"]) == 0, table
-        assert float(table[f"start_jump_max_rad{mode}"]) < 0.2, table
-        assert 0 < float(last[f"max_jump_ratio{mode}"])
-        if int(table[f"start_jumps{mode}"]) == 0:
-            assert float(last[f"max_jump_ratio{mode}"]) <= 1 + 1e-6, table
+        # restarts included: a goal that comes within stale_timeout of the last command starts from it, so a
+        # robot lagging behind the commands sees no setpoint jump; every jump is within v_max dt
+        assert int(last[f"limit_violations{mode}"]) == 0 and int(table[f"start_jumps{mode}"]) == 0, table
+        assert 0 < float(last[f"max_jump_ratio{mode}"]) <= 1 + 1e-6, table
 
 
 def _tagged_pids(tag: str) -> list[int]:
