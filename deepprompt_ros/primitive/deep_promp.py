@@ -1,5 +1,11 @@
 """A trained DeepProMP and the operations of the paper (Sec. III-C and appendix): conditioning
-(Eq. 1 and 3), decoding, sampling, blending (Eq. 4) and refinement (Eq. 5).
+(Eq. 1 and 3; for a split latent also exact Gaussian conditioning of its linear block,
+:mod:`deepprompt_ros.primitive.linear_conditioning`), decoding, sampling, blending (Eq. 4) and
+refinement (Eq. 5).
+
+The module is past ~400 lines on purpose: :class:`DeepProMP` is the one object a user or the server
+holds, and its methods are mostly input validation and documentation around the computations that
+live in the modules named below.
 
 :class:`DeepProMP` validates inputs in the robot's units and evaluates the network through its
 float64 numpy twin (:class:`deepprompt_ros.primitive.numpy_net.NumpyNet`); images go through the
@@ -26,6 +32,7 @@ from deepprompt_ros.model.network import DeepProMPNet
 from deepprompt_ros.primitive.blending import blend_gaussians
 from deepprompt_ros.primitive.inputs import check_images, check_phases, check_weights
 from deepprompt_ros.primitive.latent import LatentGaussian
+from deepprompt_ros.primitive.linear_conditioning import condition_split
 from deepprompt_ros.primitive.numpy_net import NumpyNet
 from deepprompt_ros.primitive.refinement import RefinementResult, refine_exact, refine_map
 
@@ -55,6 +62,7 @@ class DeepProMP:
         if len(self.joint_names) != self.cfg.n_joints:
             raise ValueError(f"{len(self.joint_names)} joint names for a model with {self.cfg.n_joints} joints")
         self._np = NumpyNet(net, normalization)
+        self._split = self.cfg.latent_linear > 0
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -166,8 +174,21 @@ class DeepProMP:
     def condition(self, via_x=None, via_y=None, via_weights=None, via_mask=None,
                   contexts: Mapping[str, np.ndarray] | None = None,
                   context_weights: Mapping[str, Sequence[float]] | None = None,
-                  images=None, image_weight: float = 1.0) -> LatentGaussian:
-        """q(z | A, C, ω) by Bayesian aggregation (paper Eq. 1 and the importance-weighted Eq. 3).
+                  images=None, image_weight: float = 1.0, via_noise: float | None = None,
+                  n_candidates: int = 16) -> LatentGaussian:
+        """q(z | A, C, ω): Bayesian aggregation (paper Eq. 1 and the importance-weighted Eq. 3), and for
+        a split latent (``latent_linear`` k_l > 0) exact Gaussian conditioning of z_lin on the via-points.
+
+        Plain latent: the aggregation of every element. Split latent
+        (:mod:`deepprompt_ros.primitive.linear_conditioning`): the prior of z_lin is the aggregation
+        q_c of the contexts and images alone; z_nl candidates (the mean of the aggregation of
+        everything, via-points included, and ``n_candidates`` seeded draws from it) are weighted by
+        the closed-form marginal likelihood of the via-points; z_lin is conditioned exactly on the
+        observed joints of each via-point, whose weight ω scales its precision. The mean is the
+        best-weighted candidate with its z_lin posterior mean; :meth:`sample` draws candidates by
+        weight and z_lin from its posterior, so samples pass the via-points within the noise.
+        Without a via-point of weight > 0 both give the aggregation. The latent records q_c
+        (``context_mean``, ``context_var``), the prior of :meth:`refine_map`.
 
         Parameters
         ----------
@@ -177,12 +198,20 @@ class DeepProMP:
         via_mask : array of bool, shape (n, d) or (d,), optional
             Joints constrained by each via-point. The encoder needs whole configurations, so the
             unconstrained joints of a partial via-point are filled with the mean trajectory
-            conditioned on everything else; :meth:`refine` with the same mask then meets the
-            constrained joints exactly.
+            conditioned on everything else, and its encoding counts with its weight times the share
+            of joints it constrains (a via-point of 2 of 6 joints carries a third of a full one's
+            evidence): the free joints stay wider than under a full via-point. A split latent's
+            exact conditioning observes the constrained joints only. :meth:`refine` with the same
+            mask then meets the constrained joints exactly.
         contexts : mapping modality -> array, shape (m, c) or (c,)
         context_weights : mapping modality -> array, shape (m,)
         images : array, shape (n_img, H, W, 3) uint8, the images of one scene
         image_weight : float
+        via_noise : float, optional
+            Split latent: the via-points' standard deviation ν (normalized joint units: rad / the
+            joint's normalization std); default ``ModelConfig.via_noise``.
+        n_candidates : int
+            Split latent: draws of z_nl besides the mean of its aggregation.
         """
         mus, vars_, ws = [], [], []
         if contexts:
@@ -194,6 +223,8 @@ class DeepProMP:
             mu, var = self.encode_images(images)
             mus.append(mu), vars_.append(var)
             ws.append(check_weights([image_weight], 1, "images"))
+        q_c = self.aggregate(np.concatenate(mus), np.concatenate(vars_), np.concatenate(ws)) if mus else self.prior()
+        via = None
         if via_x is not None or via_y is not None:
             if via_x is None or via_y is None:
                 raise ValueError("via-points need both phases via_x (n,) and positions via_y (n, d)")
@@ -201,17 +232,30 @@ class DeepProMP:
             y = self.check_positions(via_y, x.shape[0])
             w = check_weights(via_weights, x.shape[0], "via-points")
             mask = self.check_mask(via_mask, x.shape[0])
-            if not mask.all():
-                full = mask.all(1)
-                base = self.condition(x[full], y[full], w[full], None, contexts, context_weights, images, image_weight)
-                fill = self.decode(base.mean, x)
-                y = np.where(mask, y, fill)
-            mu, var = self.encode_via_points(x, y)
-            mus.append(mu), vars_.append(var), ws.append(w)
-        if not mus:
+            via = x, y, w, mask
+            if not self._split or self._np.mlp_reads_z_nl:  # (a split latent's z_lin never reads the encodings)
+                y_enc, w_enc = y, w
+                if not mask.all():
+                    full = mask.all(1)
+                    base = self.condition(x[full], y[full], w[full], None, contexts, context_weights, images,
+                                          image_weight, via_noise, n_candidates)
+                    y_enc = np.where(mask, y, self.decode(base.mean, x))
+                    w_enc = w * mask.sum(1) / self.n_joints
+                mu, var = self.encode_via_points(x, y_enc)
+                mus.append(mu), vars_.append(var), ws.append(w_enc)
+        if not mus and via is None:
             return self.prior()
-        mu, var, w = np.concatenate(mus), np.concatenate(vars_), np.concatenate(ws)
-        return self.aggregate(mu, var, w)
+        q_all = self.aggregate(np.concatenate(mus), np.concatenate(vars_), np.concatenate(ws)) if mus else q_c
+        if not self._split or via is None or not ((via[2] > 0)[:, None] & via[3]).any():
+            # no observed joint of a via-point of weight > 0: the aggregation is the distribution
+            return LatentGaussian(q_all.mean, q_all.var, context_mean=q_c.mean, context_var=q_c.var)
+        noise = self.cfg.via_noise if via_noise is None else float(via_noise)
+        if not (np.isfinite(noise) and noise > 0):
+            raise ValueError(f"via_noise = {via_noise!r}: expected a finite standard deviation > 0 (normalized joint "
+                             "units)")
+        if int(n_candidates) != n_candidates or n_candidates < 0:
+            raise ValueError(f"n_candidates = {n_candidates!r}: expected an integer >= 0")
+        return condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, *via, noise, int(n_candidates))
 
     @staticmethod
     def aggregate(mu: np.ndarray, var: np.ndarray, w: np.ndarray) -> LatentGaussian:
@@ -263,6 +307,7 @@ class DeepProMP:
 
     def sample(self, latent: LatentGaussian, x, n: int, rng: np.random.Generator | int | None = None) -> np.ndarray:
         """n trajectories, each with ONE z ~ q(z) held constant over the trajectory (paper Sec. III-C).
+        A split latent's z: a z_nl candidate drawn by weight and z_lin from the full posterior given it.
 
         Returns
         -------
@@ -271,8 +316,40 @@ class DeepProMP:
         if n < 1:
             raise ValueError(f"number of samples must be >= 1, got {n}")
         rng = np.random.default_rng(rng)
-        z = latent.mean + rng.standard_normal((n, self.latent_dim)) * latent.std
+        if latent.linear is not None:  # a candidate of z_nl by weight, z_lin from its exact posterior
+            z = latent.linear.draw(rng, n)
+        else:
+            z = latent.mean + rng.standard_normal((n, self.latent_dim)) * latent.std
         return self.decode(z, self.check_phases(x))
+
+    def linearized_std(self, latent: LatentGaussian, x) -> np.ndarray:
+        """Per-point standard deviation of the trajectory without sampling.
+
+        Plain latent: linearized at the mean, sqrt(diag(J diag(var) Jᵀ)), J = ∂μ_y/∂z at (mean, x).
+        Split latent: exact for the mixture :meth:`sample` draws from, as the decoder is linear in
+        z_lin: Var = J_lin Σ_lin J_linᵀ (the full z_lin covariance, the same for every candidate,
+        J_lin = Φ(x) A) + the weighted variance of the candidates' mean trajectories.
+
+        Parameters
+        ----------
+        x : array, shape (T,)
+
+        Returns
+        -------
+        array, shape (T, d)
+        """
+        x = self.check_phases(x)
+        if latent.linear is None:
+            _, jac = self.decoder_jacobian(latent.mean, x)  # (T, d, k)
+            return np.sqrt(((jac * latent.std) ** 2).sum(axis=-1))
+        block = latent.linear
+        _, j_lin = self._np.linear_design(x)  # (T, d, k_l)
+        var = np.einsum("tdk,kl,tdl->td", j_lin, block.cov(), j_lin)
+        if block.candidates.shape[0] > 1:
+            y = self.decode(block.candidates, x)  # (C, T, d)
+            y_bar = np.einsum("c,ctd->td", block.weights, y)
+            var += np.einsum("c,ctd->td", block.weights, (y - y_bar) ** 2)
+        return np.sqrt(np.maximum(var, 0.0))
 
     def trajectory_std(self, latent: LatentGaussian, x, n_samples: int = 64, seed: int = 0) -> np.ndarray:
         """Per-point standard deviation of the trajectory distribution (Monte Carlo), shape (T, d)."""
@@ -325,7 +402,9 @@ class DeepProMP:
                latent_bound: float = 5.0) -> RefinementResult:
         """Deployment-time refinement of (μ̃, σ̃) that meets the via-points to ``tol`` (paper Eq. 5
         and appendix): :func:`deepprompt_ros.primitive.refinement.refine_exact`, where the other
-        parameters are described. :meth:`refine_map` is the regularized (MAP) alternative.
+        parameters are described. A split latent whose mean meets them already comes back as it is
+        (0 iterations); else its linear block is conditioned again with a smaller noise.
+        :meth:`refine_map` is the regularized (MAP) alternative.
 
         Parameters
         ----------
@@ -352,11 +431,13 @@ class DeepProMP:
 
         Parameters
         ----------
-        latent : LatentGaussian, the initialization and (``prior="posterior"``) the prior
+        latent : LatentGaussian, the initialization (its mean) and (``prior="posterior"``) the prior
         via_x : array, shape (n,); via_y : array, shape (n, d)
         joint_mask : array of bool, shape (n, d) or (d,), optional; joints to meet (default all)
         prior : {"posterior", "standard"}
-            ``latent`` as the prior, or the model's N(0, I).
+            What ``latent`` knows besides the via-points — q_c, the aggregation of its contexts and
+            images, recorded by :meth:`condition` (a latent without that record is taken as the
+            prior itself) — so the via-points count once, in the likelihood; or the model's N(0, I).
         noise_std : float or array, shape (d,), optional
             Via-point standard deviation in joint units (default σ_y · each joint's normalization std).
         """

@@ -1,25 +1,139 @@
 """The conditioned latent distribution q(z) of a primitive (torch-free: the server's handle store
-imports it before loading torch)."""
+imports it before loading torch).
+
+A plain :class:`LatentGaussian` is the diagonal Gaussian of the Bayesian aggregation (paper Eq. 1
+and 3). A model whose latent is split into a linear and a nonlinear block
+(``ModelConfig.latent_linear`` k_l > 0) conditions z_lin exactly on the via-points; its latent also
+carries a :class:`LinearBlock`: the candidates of z_nl with their importance weights, each with the
+posterior mean of z_lin, and the full posterior covariance of z_lin, shared by every candidate.
+"""
 from __future__ import annotations
 
 import dataclasses
 
 import numpy as np
 
-__all__ = ["LatentGaussian"]
+__all__ = ["LatentGaussian", "LinearBlock"]
+
+
+def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a⁻¹ b for a square (triangular) factor a, by LAPACK's solver (no inverse is formed)."""
+    return np.linalg.solve(a, b) if a.shape[0] else np.zeros_like(b)
+
+
+@dataclasses.dataclass(frozen=True)
+class LinearBlock:
+    """Posterior of the linear block z_lin (k_l) under exact Gaussian conditioning on via-points, for
+    each of C candidates of the nonlinear block z_nl.
+
+    z_lin | z_nl = candidate c  ~  N(candidates[c, :k_l], diag(scale) Q diag(scale)),
+
+    Q the posterior covariance of the whitened u = (z_lin − m) / scale (m, scale² the prior, the
+    context aggregation), the same for every candidate, stored in one of two factored forms:
+
+    * ``form="observation"`` (M <= k_l rows): ``design`` G (M, k_l), the whitened design (rows of the
+      via-points' observed joints divided by their noise, columns times ``scale``), and ``chol`` the
+      lower Cholesky factor of I_M + G Gᵀ; Q = I − Gᵀ (I + G Gᵀ)⁻¹ G.
+    * ``form="information"`` (M > k_l rows): ``chol`` the lower Cholesky factor of the whitened
+      precision I + Gᵀ G; Q = (I + GᵀG)⁻¹. ``design`` is None.
+
+    Attributes
+    ----------
+    scale : array, shape (k_l,)
+        Prior standard deviations of z_lin.
+    candidates : array, shape (C, k)
+        Full latents [posterior mean of z_lin given the candidate, the candidate of z_nl].
+    weights : array, shape (C,)
+        Importance weights of the candidates (closed-form marginal likelihood of the via-points), sum 1.
+    chol : array, shape (M, M) or (k_l, k_l)
+    design : array, shape (M, k_l), or None
+    form : {"observation", "information"}
+    noise : float
+        The via-point standard deviation used (normalized joint units, before the importance weights).
+    """
+
+    scale: np.ndarray
+    candidates: np.ndarray
+    weights: np.ndarray
+    chol: np.ndarray
+    design: np.ndarray | None
+    form: str
+    noise: float
+
+    @property
+    def k_lin(self) -> int:
+        return int(self.scale.shape[0])
+
+    def whitened_var(self) -> np.ndarray:
+        """diag Q, shape (k_l,)."""
+        if self.form == "observation":
+            w = _solve(self.chol, self.design)  # (M, k_l): Q = I − Wᵀ W
+            return np.clip(1.0 - (w * w).sum(0), 0.0, 1.0)
+        li = _solve(self.chol, np.eye(self.k_lin))  # L⁻¹: Q = L⁻ᵀ L⁻¹
+        return (li * li).sum(0)
+
+    def cov(self) -> np.ndarray:
+        """The full posterior covariance of z_lin, diag(scale) Q diag(scale), shape (k_l, k_l)."""
+        if self.form == "observation":
+            w = _solve(self.chol, self.design)
+            q = np.eye(self.k_lin) - w.T @ w
+        else:
+            li = _solve(self.chol, np.eye(self.k_lin))
+            q = li.T @ li
+        return q * self.scale[:, None] * self.scale[None, :]
+
+    def draw_lin(self, eps: np.ndarray, eps_obs: np.ndarray | None = None) -> np.ndarray:
+        """Zero-mean draws of z_lin from N(0, diag(scale) Q diag(scale)): eps (n, k_l) standard normal
+        (and, in the observation form, eps_obs (n, M) standard normal) → (n, k_l).
+
+        Observation form by pathwise conditioning: u = ε − Gᵀ (I + GGᵀ)⁻¹ (G ε + ε_obs) has covariance
+        Q exactly; information form u = L⁻ᵀ ε."""
+        if self.form == "observation":
+            if self.design.shape[0] == 0:
+                u = eps
+            else:
+                v = self.design @ eps.T + eps_obs.T  # (M, n)
+                a = _solve(self.chol.T, _solve(self.chol, v))  # (I + GGᵀ)⁻¹ v
+                u = eps - (self.design.T @ a).T
+        else:
+            u = _solve(self.chol.T, eps.T).T
+        return u * self.scale
+
+    def draw(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        """n latents: a candidate drawn by weight, then z_lin from its conditional posterior; (n, k)."""
+        idx = rng.choice(self.candidates.shape[0], size=n, p=self.weights)
+        z = self.candidates[idx].copy()
+        eps = rng.standard_normal((n, self.k_lin))
+        eps_obs = (rng.standard_normal((n, self.design.shape[0])) if self.form == "observation" else None)
+        z[:, :self.k_lin] += self.draw_lin(eps, eps_obs)
+        return z
 
 
 @dataclasses.dataclass(frozen=True)
 class LatentGaussian:
     """q(z) = N(mean, diag(var)), the conditioned latent distribution of a primitive.
 
+    ``mean`` is the latent the robot executes and ``var`` the diagonal summary that blending (paper
+    Eq. 4) and the server's handles use. With ``linear`` set (a split latent), ``mean`` is the
+    best-weighted candidate with its z_lin posterior mean, ``var`` the diagonal of the z_lin
+    posterior covariance and the variance of q(z_nl) (the candidates' proposal); sampling and the
+    full covariance come from ``linear``.
+
     Attributes
     ----------
     mean, var : array, shape (k,)
+    linear : LinearBlock or None
+        The exact posterior of the linear block (split latents only).
+    context_mean, context_var : array, shape (k,), or None
+        q_c(z), the aggregation of the contexts and images alone (without the via-points): the
+        prior of MAP refinement, whose likelihood holds the via-points. None: not recorded.
     """
 
     mean: np.ndarray
     var: np.ndarray
+    linear: LinearBlock | None = None
+    context_mean: np.ndarray | None = None
+    context_var: np.ndarray | None = None
 
     @property
     def std(self) -> np.ndarray:

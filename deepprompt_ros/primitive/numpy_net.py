@@ -87,7 +87,14 @@ class NumpyNet:
         self._W1zT = np.ascontiguousarray(self._dec_W1z.T)
         self._W3T = np.ascontiguousarray(self._dec.W[2].T * self.y_std)
         self._b3 = self._dec.b[2] * self.y_std + self.y_mean
+        self._no_mlp = bool(nb) and self.cfg.residual_scale == 0.0  # s·MLP ≡ 0: skipped in decode_nonlinear
         self._pre_x_cache: dict[bytes, np.ndarray] = {}
+
+    @property
+    def mlp_reads_z_nl(self) -> bool:
+        """Whether the decoder's output depends on z_nl = z[k_l:] through the MLP (not when z_nl is
+        empty or the residual's factor s is 0)."""
+        return self.cfg.latent_nonlinear > 0 and not self._no_mlp
 
     @property
     def context_names(self) -> list[str]:
@@ -131,7 +138,10 @@ class NumpyNet:
     def decode_nonlinear(self, z_nl: np.ndarray, x: np.ndarray) -> np.ndarray:
         """The decoder without its linear part, s·MLP(z_nl, x) plus the joints' mean, joint units:
         z_nl (k − k_l,) → (T, d), (n, k − k_l) → (n, T, d); x (T,). (The whole decoder when there is no
-        linear basis; with ``latent_linear`` 0, z_nl is all of z.)"""
+        linear basis; with ``latent_linear`` 0, z_nl is all of z.) A residual decoder with s = 0 has no
+        MLP part (its output layer is 0): the MLP is not evaluated."""
+        if self._no_mlp:
+            return np.broadcast_to(self._b3, (*z_nl.shape[:-1], np.shape(x)[0], self._b3.shape[0])).copy()
         pre_x = self._layer1_phase(x)  # (T, h)
         if z_nl.ndim == 1:
             h = pre_x + z_nl @ self._W1zT
@@ -144,7 +154,8 @@ class NumpyNet:
         """The linear part at phases x (n,) in joint units: Φ(x) b (n, d) and its matrix in z_lin,
         Φ(x) A (n, d, k_l), so the part is Φ(x) b + Φ(x) A z_lin (``latent_linear`` > 0 only)."""
         phi = self._phi(x)
-        return phi @ self._basis_b, np.einsum("nb,bdk->ndk", phi, self._basis_A)
+        nb, d, k_l = self._basis_A.shape
+        return phi @ self._basis_b, (phi @ self._basis_A.reshape(nb, d * k_l)).reshape(-1, d, k_l)
 
     @staticmethod
     def _per_grid(cache: dict, x, compute: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:

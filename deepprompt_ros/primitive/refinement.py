@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 
 from deepprompt_ros.primitive.latent import LatentGaussian
+from deepprompt_ros.primitive.linear_conditioning import SplitRefinement, refine_split
 
 if TYPE_CHECKING:
     from deepprompt_ros.primitive.deep_promp import DeepProMP
@@ -85,8 +86,12 @@ def refine_map(prim: "DeepProMP", latent: LatentGaussian, via_x, via_y, joint_ma
     """MAP refinement: μ̃ = argmin_z Σ_ij m_ij (y_ij − μ_y(z, x_i)_j)² / s_j² + (z − m)ᵀ P (z − m).
 
     A regularized least-squares step instead of meeting the via-points exactly. ``prior``:
-    ``"posterior"`` — m, P = the mean and precision diag(1/σ²) of ``latent`` (normally
-    q(z | via-points)); ``"standard"`` — the model's prior N(0, I). For a decoder that is linear
+    ``"posterior"`` — m, P = the mean and precision diag(1/σ²) of what ``latent`` knows from the
+    inputs other than the via-points: q_c, the aggregation of its contexts and images, which
+    :meth:`DeepProMP.condition` records in the latent (``context_mean``, ``context_var``), for plain
+    and split latents alike; the via-points enter through the likelihood alone, never twice. A latent
+    that records no q_c (built by hand) is the prior itself: it must not hold the via-points'
+    evidence. ``"standard"`` — the model's prior N(0, I). For a decoder that is linear
     in z (``decoder_basis`` > 0 with ``residual_scale`` 0) and the standard prior this is exactly
     Gaussian conditioning of the latent linear-Gaussian model — ProMP conditioning in the latent.
     Solved by Levenberg–Marquardt with the decoder's exact Jacobian (one step when it is linear).
@@ -94,7 +99,8 @@ def refine_map(prim: "DeepProMP", latent: LatentGaussian, via_x, via_y, joint_ma
     Parameters
     ----------
     prim : DeepProMP
-    latent : LatentGaussian, the initialization and (``prior="posterior"``) the prior
+    latent : LatentGaussian, the initialization (its mean) and (``prior="posterior"``) the prior (its
+        recorded q_c, else itself)
     via_x : array, shape (n,); via_y : array, shape (n, d)
     joint_mask : array of bool, shape (n, d) or (d,), optional; joints to meet (default all)
     noise_std : float or array (d,), optional
@@ -111,7 +117,8 @@ def refine_map(prim: "DeepProMP", latent: LatentGaussian, via_x, via_y, joint_ma
     """
     x, y, mask = refinement_inputs(prim, via_x, via_y, joint_mask, max_iterations, tol)
     if prior == "posterior":
-        m, prec = np.asarray(latent.mean, dtype=np.float64), 1.0 / np.asarray(latent.var, dtype=np.float64)
+        known = latent if latent.context_mean is None else LatentGaussian(latent.context_mean, latent.context_var)
+        m, prec = np.asarray(known.mean, dtype=np.float64), 1.0 / np.asarray(known.var, dtype=np.float64)
     elif prior == "standard":
         m, prec = np.zeros(prim.latent_dim), np.ones(prim.latent_dim)
     else:
@@ -163,6 +170,20 @@ def refine_map(prim: "DeepProMP", latent: LatentGaussian, via_x, via_y, joint_ma
 
 
 # ---------------------------------------------------------------------------------------- exact
+def _split_result(prim: "DeepProMP", split: SplitRefinement, x, y, mask, n_samples: int,
+                  seed: int) -> RefinementResult:
+    """The :class:`RefinementResult` of a split latent refined in its linear block alone; the sample
+    mean error is that of ``n_samples`` draws of the latent (candidates by weight, z_lin exact)."""
+    mf = mask.astype(np.float64)
+    r = (y - prim.decode(split.latent.mean, x)) * mf
+    y_bar = prim.sample(split.latent, x, n_samples, seed).mean(0)
+    max_err = float(np.abs(r).max())
+    return RefinementResult(latent=split.latent, max_error=max_err, errors=r,
+                            sample_mean_error=float(np.abs((y - y_bar) * mf).max()), iterations=split.iterations,
+                            reachable=max_err <= split.tol, reason=split.reason,
+                            error_history=np.minimum.accumulate(np.array(split.history)))
+
+
 class _MeanFit:
     """Stage 1 of :func:`refine_exact`: μ̃ such that μ_y(μ̃, x) meets the via-points, with the best
     iterate of every run and the non-increasing error history."""
@@ -328,6 +349,14 @@ def refine_exact(prim: "DeepProMP", latent: LatentGaussian, via_x, via_y, joint_
     K FIXED samples ε_k (common random numbers: fresh samples at every step leave Monte-Carlo
     noise of ~1e-2 that no optimizer removes).
 
+    A split latent (``latent_linear`` > 0, from :meth:`DeepProMP.condition`) is refined in the linear
+    block first (:func:`~deepprompt_ros.primitive.linear_conditioning.refine_split`): nothing to do
+    (0 iterations, the latent returned as it is) when its mean meets the via-points already, else
+    z_lin is conditioned exactly again on these via-points with the noise divided by 10 per
+    iteration, keeping the z_nl candidates; the result stays a split latent whose samples pass the
+    via-points. Only if that cannot meet them (more constraints than the linear block can satisfy)
+    do the stages below continue from its best fit, with a plain latent.
+
     Unreachable via-points: stage 1 stops at a stationary point when no damped step (damping up
     to 1e6) decreases the squared error or the gradient Jᵀr vanishes; it then restarts from
     small seeded perturbations (``max_restarts``) while iterations remain (all runs share the
@@ -350,9 +379,22 @@ def refine_exact(prim: "DeepProMP", latent: LatentGaussian, via_x, via_y, joint_
         what was demonstrated. Via-points that need more are reported unreachable.
     """
     x, y, mask = refinement_inputs(prim, via_x, via_y, joint_mask, max_iterations, tol)
+    split = None
+    if latent.linear is not None and latent.context_mean is not None:
+        split = refine_split(prim._np, latent, x, y, mask, tol, max_iterations)
+        if split.max_error <= tol or split.iterations >= max_iterations:
+            return _split_result(prim, split, x, y, mask, n_samples, seed)
+        latent = split.latent
     fit = _MeanFit(prim, x, y, mask, tol, latent_bound)
-    mu, r, it, reason = fit.run(latent, max_iterations, max_restarts, smoothing_schedule, seed)
+    budget = max_iterations - (split.iterations if split else 0)
+    mu, r, it, reason = fit.run(latent, budget, max_restarts, smoothing_schedule, seed)
     max_err = float(np.abs(r).max())
+    if split is not None:
+        it += split.iterations
+        if split.max_error <= max_err:  # the box |μ̃| <= latent_bound kept the fit from the split latent's mean
+            return dataclasses.replace(_split_result(prim, split, x, y, mask, n_samples, seed), iterations=it,
+                                       reason=f"{split.reason}; then {reason} without a better fit")
+        fit.history[:0] = split.history[:-1]
 
     # Stage 2: σ̃ with fixed ε (paper objective in σ̃ at the refined mean).
     eps = np.random.default_rng(seed).standard_normal((n_samples, prim.latent_dim))

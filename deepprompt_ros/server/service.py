@@ -113,6 +113,8 @@ class PrimitiveServerCore:
     def _samples(self, prim: LoadedPrimitive, dist: StoredDistribution, x: np.ndarray, n: int,
                  seed: int) -> np.ndarray:
         """n trajectories, ONE ε per trajectory: shape (n, T, d)."""
+        if isinstance(dist, ConditionedLatent) and dist.latent.linear is not None:  # split latent: exact posterior
+            return prim.model.sample(dist.latent, x, n, seed)
         k, t = prim.model.latent_dim, x.shape[0]
         eps = np.random.default_rng(seed).standard_normal((n, k))
         mean, var = dist.latent_at(x)  # (T, k) each
@@ -129,8 +131,7 @@ class PrimitiveServerCore:
         mean = self._decode(prim, dist, x, dist.eps)
         xs = np.linspace(0.0, 1.0, min(n_points, self.config.preview_std_points))
         if isinstance(dist, ConditionedLatent) and self.config.preview_std_method == "linearized":
-            _, jac = prim.model.decoder_jacobian(dist.latent.mean, xs)  # (T, d, k)
-            std_s = np.sqrt(((jac * dist.latent.std) ** 2).sum(axis=-1))
+            std_s = prim.model.linearized_std(dist.latent, xs)
         else:
             std_s = self._samples(prim, dist, xs, self.config.preview_std_samples, seed=0).std(axis=0)
         std = std_s if xs.size == n_points else np.stack(

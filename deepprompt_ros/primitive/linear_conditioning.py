@@ -1,0 +1,243 @@
+"""Exact conditioning of the linear latent block on via-points (``ModelConfig.latent_linear`` k_l > 0).
+
+The decoder μ_y(z, x) = Φ(x)(b + A z_lin) + s·MLP(z_nl, x) is linear in z_lin for a fixed z_nl, so a
+via-point y_v at phase x_v is a linear observation of z_lin — ProMP's conditioning inside the latent:
+
+    y_v − s·MLP(z_nl, x_v) − Φ(x_v) b = Φ(x_v) A z_lin + ε,   ε_j ~ N(0, ν² σ_j² / ω_v),
+
+one row per observed joint j of each via-point (a joint mask drops rows, a weight ω_v = 0 all of
+them), ν = ``via_noise`` (normalized units) and σ_j the joint's normalization std. The prior of
+z_lin is the aggregation of the contexts and images (q_c, diagonal). The posterior is Gaussian with
+a full k_l × k_l covariance, the same for every z_nl; its mean depends on z_nl through the offset.
+
+z_nl is not linear: candidates (the mean of its aggregation q(z_nl) of all inputs and seeded draws
+from it) are weighted by the closed-form marginal likelihood of the via-points, N(r; H m, H Σ Hᵀ + R)
+(up to the factor every candidate shares). See :meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.condition`.
+
+Numerics (float64): everything is whitened (rows divided by their noise, columns times the prior
+std), then factored by Cholesky — of I + G Gᵀ (M × M) when there are no more rows M than k_l, of the
+precision I + Gᵀ G (k_l × k_l) otherwise — and solved by triangular substitution; no inverse of an
+ill-conditioned matrix is formed (the information form's L⁻¹ is that of the whitened precision's
+Cholesky factor, whose condition number is the square root of the precision's).
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from deepprompt_ros.primitive.latent import LatentGaussian, LinearBlock
+
+if TYPE_CHECKING:
+    from deepprompt_ros.primitive.numpy_net import NumpyNet
+
+__all__ = ["whitened_posterior", "condition_split", "SplitRefinement", "refine_split"]
+
+
+def whitened_posterior(g: np.ndarray, d: np.ndarray) -> tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Posterior of u ~ N(0, I) given d_c = G u + e, e ~ N(0, I), for C right-hand sides at once.
+
+    Parameters
+    ----------
+    g : array, shape (M, k), the whitened design G
+    d : array, shape (C, M), the whitened residuals of C candidates
+
+    Returns
+    -------
+    form : "observation" (M <= k) or "information"
+    chol : array, lower Cholesky factor L of I + G Gᵀ (M, M) or of I + Gᵀ G (k, k)
+    u : array, shape (C, k), the posterior means (I + GᵀG)⁻¹ Gᵀ d_c
+    loglik : array, shape (C,)
+        −½ d_cᵀ (I + G Gᵀ)⁻¹ d_c = −½ (‖d_c − G u_c‖² + ‖u_c‖²): the log marginal likelihood of d_c
+        up to the term −½ log det(I + G Gᵀ) every candidate shares.
+    qdiag : array, shape (k,), the diagonal of the posterior covariance Q = (I + GᵀG)⁻¹
+    """
+    m, k = g.shape
+    c = d.shape[0]
+    if m == 0:
+        return "observation", np.zeros((0, 0)), np.zeros((c, k)), np.zeros(c), np.ones(k)
+    if m <= k:
+        # one triangular solve L⁻¹ [G | dᵀ]: W = L⁻¹G gives Q = I − WᵀW, v = L⁻¹dᵀ gives
+        # u = Wᵀ v and dᵀ(I + GGᵀ)⁻¹d = ‖v‖²
+        s = g @ g.T
+        s.flat[::m + 1] += 1.0  # I + G Gᵀ
+        chol = np.linalg.cholesky(s)
+        wv = _lower_solve(chol, np.concatenate([g, d.T], 1))
+        w, v = wv[:, :k], wv[:, k:]
+        return "observation", chol, (w.T @ v).T, -0.5 * (v * v).sum(0), np.clip(1.0 - (w * w).sum(0), 0.0, 1.0)
+    # information form: L⁻¹ [I | Gᵀdᵀ] gives Q = L⁻ᵀL⁻¹ and u = L⁻ᵀ L⁻¹ Gᵀ d
+    chol = np.linalg.cholesky(np.eye(k) + g.T @ g)
+    lv = _lower_solve(chol, np.concatenate([np.eye(k), g.T @ d.T], 1))
+    li, v = lv[:, :k], lv[:, k:]
+    u = (li.T @ v).T
+    res = d - u @ g.T
+    return "information", chol, u, -0.5 * ((res * res).sum(1) + (u * u).sum(1)), (li * li).sum(0)
+
+
+def _lower_solve(chol: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """L⁻¹ b for a lower-triangular L by forward substitution (LAPACK trsm through torch, float64; numpy's
+    solve would factor L again)."""
+    return torch.linalg.solve_triangular(torch.from_numpy(chol), torch.from_numpy(np.ascontiguousarray(b)),
+                                         upper=False).numpy()
+
+
+_EPS_CACHE: dict[tuple[int, int, int], np.ndarray] = {}
+
+
+def _candidates(mean_nl: np.ndarray, var_nl: np.ndarray, n: int, seed: int) -> np.ndarray:
+    """The mean of q(z_nl) and ``n`` seeded draws from it, (n + 1, k − k_l). The standard normal
+    draws of a (n, k − k_l, seed) are made once (read-only, shared by every call and thread)."""
+    key = (n, mean_nl.shape[0], seed)
+    eps = _EPS_CACHE.get(key)
+    if eps is None:
+        eps = np.random.default_rng(seed).standard_normal((n, mean_nl.shape[0]))
+        eps.flags.writeable = False
+        if len(_EPS_CACHE) >= 16:
+            _EPS_CACHE.clear()
+        _EPS_CACHE[key] = eps
+    out = np.empty((n + 1, mean_nl.shape[0]))
+    out[0] = mean_nl
+    np.multiply(eps, np.sqrt(var_nl), out=out[1:])
+    out[1:] += mean_nl
+    return out
+
+
+def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.ndarray, all_mean: np.ndarray,
+                    all_var: np.ndarray, x: np.ndarray, y: np.ndarray, w: np.ndarray, mask: np.ndarray,
+                    noise: float, n_candidates: int = 16, seed: int = 0,
+                    candidates_nl: np.ndarray | None = None) -> LatentGaussian:
+    """q(z) of a split latent: z_lin exactly conditioned on the via-points for each z_nl candidate.
+
+    Parameters
+    ----------
+    net : NumpyNet of a model with ``latent_linear`` k_l > 0
+    context_mean, context_var : array, shape (k,)
+        q_c(z), the aggregation of contexts and images only; its z_lin block is the prior of z_lin.
+    all_mean, all_var : array, shape (k,)
+        The aggregation of everything (via-points included); its z_nl block proposes the candidates.
+    x : array, shape (n,); y : array, shape (n, d) joint units; w : array, shape (n,) ω >= 0;
+    mask : array of bool, shape (n, d), the observed joints
+    noise : float
+        ν, the via-point standard deviation in normalized joint units (ω scales the precision).
+    n_candidates : int
+        Draws from q(z_nl) besides its mean (none when the MLP cannot depend on z_nl: k_l = k or
+        residual_scale 0).
+    seed : int
+        Of the draws (the same request gives the same latent).
+    candidates_nl : array, shape (C, k − k_l), optional
+        Candidates to use instead of drawing them (refinement re-conditions with the same ones).
+
+    Returns
+    -------
+    LatentGaussian with ``linear`` set; ``mean`` = the candidate of the highest weight.
+    """
+    cfg = net.cfg
+    k_l = cfg.latent_linear
+    m, s = context_mean[:k_l], np.sqrt(context_var[:k_l])
+    if candidates_nl is None:
+        if not net.mlp_reads_z_nl:
+            candidates_nl = all_mean[None, k_l:]
+        else:
+            candidates_nl = _candidates(all_mean[k_l:], all_var[k_l:], n_candidates, seed)
+    keep = (w > 0)[:, None] & mask  # the rows: observed joints of via-points of weight > 0
+    if keep.all():  # every joint of every via-point: rows in (via-point, joint) order without indexing
+        lin_b, lin_a = net.linear_design(x)  # (n, d), (n, d, k_l)
+        off = net.decode_nonlinear(candidates_nl, x) + lin_b  # (C, n, d)
+        h = lin_a.reshape(-1, k_l)  # (M, k_l)
+        sigma = (noise * net.y_std[None, :] / np.sqrt(w)[:, None]).reshape(-1)  # (M,)
+        r = (y[None] - off).reshape(off.shape[0], -1)  # (C, M)
+    elif keep.any():
+        rows = keep.any(1)
+        lin_b, lin_a = net.linear_design(x[rows])
+        off = net.decode_nonlinear(candidates_nl, x[rows]) + lin_b
+        sel = keep[rows]
+        h = lin_a[sel]
+        sigma = (noise * net.y_std[None, :] / np.sqrt(w[rows])[:, None])[sel]
+        r = (y[rows][None] - off)[:, sel]
+    else:
+        h, sigma, r = np.zeros((0, k_l)), np.ones(0), np.zeros((candidates_nl.shape[0], 0))
+    g = h * (s / sigma[:, None])  # whitened design
+    d = (r - h @ m) / sigma  # whitened residuals of the candidates
+    if not (np.isfinite(g.sum()) and np.isfinite(d.sum())):  # an overflow: no distribution to give
+        nan = np.full(cfg.latent_dim, np.nan)
+        return LatentGaussian(nan, nan.copy(), context_mean=context_mean, context_var=context_var)
+    form, chol, u, loglik, qdiag = whitened_posterior(g, d)
+    weights = np.exp(loglik - loglik.max())
+    weights /= weights.sum()
+    cands = np.concatenate([m + u * s, candidates_nl], 1)  # (C, k)
+    block = LinearBlock(scale=s, candidates=cands, weights=weights, chol=chol,
+                        design=g if form == "observation" else None, form=form, noise=float(noise))
+    best = int(np.argmax(loglik))
+    var = np.concatenate([s ** 2 * qdiag, all_var[k_l:]])
+    return LatentGaussian(cands[best].copy(), var, linear=block, context_mean=context_mean, context_var=context_var)
+
+
+@dataclasses.dataclass(frozen=True)
+class SplitRefinement:
+    """Outcome of :func:`refine_split`: the best split latent, its max via-point error (joint units)
+    under ``tol``'s test, the iterations used (one per noise reduction), the max error before and
+    after each, and why it stopped."""
+
+    latent: LatentGaussian
+    max_error: float
+    tol: float
+    iterations: int
+    history: list
+    reason: str
+
+
+def refine_split(net: "NumpyNet", latent: LatentGaussian, x: np.ndarray, y: np.ndarray, mask: np.ndarray,
+                 tol: float, max_iterations: int, factor: float = 10.0, min_noise: float = 1e-12) -> SplitRefinement:
+    """Meet via-points with a split latent's mean by exact conditioning of z_lin alone.
+
+    0 iterations when the mean meets them (|error| <= ``tol`` on every constrained joint) already.
+    Else z_lin is conditioned again on these via-points (weight 1 each, constrained joints only),
+    from the recorded prior q_c and with the latent's z_nl candidates, with the noise divided by
+    ``factor`` per iteration (the error of a via-point the linear block can reach falls as the
+    noise squared) until the mean meets them, the error no longer halves (more constraints than the
+    block can meet), the noise falls below ``min_noise``, the factor cannot be computed, or
+    ``max_iterations``. The best latent found is returned.
+
+    Parameters
+    ----------
+    net : NumpyNet; latent : LatentGaussian with ``linear`` and ``context_mean`` set
+    x : array, shape (n,); y : array, shape (n, d) joint units; mask : array of bool, shape (n, d)
+    """
+    k_l = net.cfg.latent_linear
+
+    def error(lat):
+        return float(np.abs((y - net.decode(lat.mean, x))[mask]).max())
+
+    best, best_err = latent, error(latent)
+    history = [best_err]
+    noise, it, reason = latent.linear.noise, 0, "met by the exact conditioning"
+    cands = latent.linear.candidates[:, k_l:]
+    while best_err > tol:
+        if it >= max_iterations:
+            reason = "budget"
+            break
+        noise /= factor
+        if noise < min_noise:
+            reason = f"via-point noise below {min_noise:g} without meeting the via-points"
+            break
+        it += 1
+        try:
+            with np.errstate(all="ignore"):
+                lat = condition_split(net, latent.context_mean, latent.context_var, latent.mean, latent.var, x, y,
+                                      np.ones(x.shape[0]), mask, noise, candidates_nl=cands)
+            err = error(lat)
+        except np.linalg.LinAlgError:
+            reason = "the conditioning's factorization failed at a smaller noise"
+            history.append(best_err)
+            break
+        if not (np.isfinite(err) and err < 0.5 * best_err):
+            reason = "the error stopped falling with the noise: the linear block cannot meet these via-points"
+            history.append(best_err)
+            break
+        best, best_err = lat, err
+        history.append(best_err)
+        if best_err <= tol:
+            reason = f"met by exact conditioning of the linear block at via-point noise {noise:.3g}"
+    return SplitRefinement(best, best_err, tol, it, history, reason)

@@ -1,0 +1,388 @@
+"""Conditioning a split latent (ModelConfig.latent_linear): z_lin exactly on the via-points, z_nl
+candidates weighted by the marginal likelihood (primitive.linear_conditioning), on small models built
+here — the linear part the PPCA of synthetic demonstrations (training.basis.pca_basis), the MLP random
+or built by hand to make two modes. Also: partial via-points and MAP refinement of plain latents,
+and a plain latent's numbers unchanged on the shipped reach model."""
+import pathlib
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from deepprompt_ros.baselines.promp import ProMP
+from deepprompt_ros.common.results import Code
+from deepprompt_ros.model.checkpoint import Normalization, save_checkpoint
+from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
+from deepprompt_ros.model.phase import phase_basis
+from deepprompt_ros.primitive.deep_promp import DeepProMP
+from deepprompt_ros.primitive.latent import LatentGaussian
+from deepprompt_ros.primitive.linear_conditioning import condition_split
+from deepprompt_ros.robots.spec import load_robot
+from deepprompt_ros.server.config import ServerConfig, robot_limits
+from deepprompt_ros.server.primitives_file import PrimitiveEntry, load_primitive
+from deepprompt_ros.server.requests import ConditionRequest, SampleRequest, ViaPointIn
+from deepprompt_ros.server.service import PrimitiveServerCore
+from deepprompt_ros.training.basis import pca_basis
+
+torch.set_num_threads(1)
+REPO = pathlib.Path(__file__).resolve().parent.parent
+
+
+def demos(n=30, t=50, d=3, seed=0, y_mean=None):
+    """n smooth demonstrations (t phases, d joints, rad): a base motion plus random linear, sine and
+    quadratic terms. Returns x (t,), Y (n, t, d)."""
+    rng = np.random.default_rng(seed)
+    x = np.linspace(0, 1, t)
+    base = np.stack([np.sin(np.pi * x * (j % 3 + 1)) * (j % 3 + 1) * 0.3 for j in range(d)], 1)
+    if y_mean is not None:
+        base = base + np.asarray(y_mean)
+    a = rng.normal(0, 0.2, (n, 3, d))
+    return x, base + a[:, 0, None] * x[:, None] + a[:, 1, None] * np.sin(2 * np.pi * x)[:, None] + \
+        a[:, 2, None] * x[:, None] ** 2
+
+
+def split_model(k_l=30, k_n=4, nb=10, d=3, rs=0.2, hidden=32, seed=0, contexts=(), names=None, y_mean=None, **cfg):
+    """A split-latent DeepProMP whose linear part is the PPCA (λ = 0.05) of :func:`demos` and whose MLP
+    and encoders are random. Returns (prim, x, Y)."""
+    x, Y = demos(d=d, seed=seed, y_mean=y_mean)
+    ym, ys = Y.reshape(-1, d).mean(0), Y.reshape(-1, d).std(0)
+    norm = Normalization(ym, ys, {n: np.zeros(c) for n, c in contexts}, {n: np.ones(c) for n, c in contexts})
+    mean, a, _ = pca_basis(phase_basis(x, nb, 1.0, False), (Y - ym) / ys, k_l, 0.05)
+    torch.manual_seed(seed)
+    net = DeepProMPNet(ModelConfig(n_joints=d, latent_dim=k_l + k_n, hidden=hidden, decoder_basis=nb,
+                                   latent_linear=k_l, residual_scale=rs, context_dims=tuple(contexts), **cfg))
+    with torch.no_grad():
+        net.basis.bias.copy_(torch.as_tensor(mean))
+        net.basis.weight.copy_(torch.as_tensor(a))
+    return DeepProMP(net, norm, names or [f"j{i}" for i in range(d)]), x, Y
+
+
+def random_via_points(rng, x, Y, n):
+    """n via-points at distinct demo phases, each joint uniform between the demos' min and max there."""
+    idx = np.sort(rng.choice(len(x), n, replace=False))
+    return x[idx], rng.uniform(Y.min(0)[idx], Y.max(0)[idx])
+
+
+# ------------------------------------------------------------------------------------------------
+# the exact conditioning
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("n_via", [2, 8])  # 6 rows <= k_l = 12: observation form; 24 rows: information form
+def test_the_linear_block_is_textbook_gaussian_conditioning(n_via):
+    """With s = 0 the decoder is Φ(x)(b + A z_lin): the latent's z_lin mean and full covariance are
+    those of dense Gaussian conditioning N(m, S) on y = H z + ε, computed here independently."""
+    prim, x, Y = split_model(k_l=12, k_n=2, nb=6, rs=0.0)
+    rng = np.random.default_rng(3)
+    xv, yv = random_via_points(rng, x, Y, n_via)
+    w = rng.uniform(0.5, 2.0, n_via)
+    noise = 0.05
+    lat = prim.condition(xv, yv, via_weights=w, via_noise=noise)
+    assert lat.linear.form == ("observation" if 3 * n_via <= 12 else "information")
+    lin_b, lin_a = prim._np.linear_design(xv)
+    h = lin_a.reshape(-1, 12)
+    r = (yv - prim._np.decode_nonlinear(np.zeros(2), xv) - lin_b).reshape(-1)
+    R = np.diag((noise * np.tile(prim.norm.y_std, n_via) / np.repeat(np.sqrt(w), 3)) ** 2)
+    S = np.eye(12)  # no context: the prior of z_lin is N(0, I)
+    K = np.linalg.solve(h @ S @ h.T + R, h @ S).T
+    np.testing.assert_allclose(lat.mean[:12], K @ r, atol=1e-9)
+    np.testing.assert_allclose(lat.linear.cov(), S - K @ h @ S, atol=1e-9)
+    np.testing.assert_allclose(lat.var[:12], np.diag(S - K @ h @ S), atol=1e-9)
+    # sampling draws from that covariance (z_lin around the mean of the one candidate)
+    z = lat.linear.draw(np.random.default_rng(0), 20000)[:, :12]
+    np.testing.assert_allclose(np.cov(z.T), lat.linear.cov(), atol=0.03 * lat.linear.cov().diagonal().max())
+
+
+def test_weights_scale_a_via_point_precision_and_zero_removes_it():
+    prim, x, Y = split_model()
+    lin, _, _ = split_model(rs=0.0)  # (no MLP: the via-points' weights in the z_nl aggregation do not matter)
+    rng = np.random.default_rng(4)
+    xv, yv = random_via_points(rng, x, Y, 3)
+    a = lin.condition(xv, yv, via_weights=[4.0, 4.0, 4.0], via_noise=1e-2)
+    b = lin.condition(xv, yv, via_noise=0.5e-2)  # ω = 4 is the noise halved
+    np.testing.assert_allclose(a.mean, b.mean, atol=1e-10)
+    np.testing.assert_allclose(a.linear.cov(), b.linear.cov(), atol=1e-12)
+    a = prim.condition(xv, yv, via_weights=[4.0, 4.0, 4.0], via_noise=1e-2)
+    np.testing.assert_allclose(a.linear.cov(), b.linear.cov(), atol=1e-12)  # the covariance is z_nl's alone
+    c = prim.condition(xv[:2], yv[:2])
+    d = prim.condition(xv, yv, via_weights=[1.0, 1.0, 0.0])  # a weight-0 via-point is not there
+    np.testing.assert_allclose(d.mean[:30], c.mean[:30], atol=1e-12)
+    np.testing.assert_allclose(d.linear.cov(), c.linear.cov(), atol=1e-12)
+    assert np.abs(prim.mean_trajectory(d, xv[2:]) - yv[2:]).max() > 1e-2  # it does not pull the mean
+
+
+@pytest.mark.parametrize("n_via", [1, 2, 3, 4, 5])
+def test_via_points_inside_the_demos_range_are_met_to_1e6_rad(n_via):
+    """Random via-points within the demonstrations' range: the mean of the conditioning meets them
+    (after refine(), which re-conditions z_lin with a smaller noise only when needed), and with a
+    noise small enough the conditioning alone meets them."""
+    prim, x, Y = split_model()
+    rng = np.random.default_rng(10 + n_via)
+    for _ in range(4):
+        xv, yv = random_via_points(rng, x, Y, n_via)
+        lat = prim.condition(xv, yv)
+        res = prim.refine(lat, xv, yv)
+        err = np.abs(prim.mean_trajectory(res.latent, xv) - yv).max()
+        assert res.reachable and err <= 1e-6 and res.latent.linear is not None, (res.reason, err)
+        if np.abs(prim.mean_trajectory(lat, xv) - yv).max() <= 1e-6:
+            assert res.iterations == 0 and res.latent is lat
+        small = prim.condition(xv, yv, via_noise=1e-7)
+        assert np.abs(prim.mean_trajectory(small, xv) - yv).max() <= 1e-6
+
+
+@pytest.mark.parametrize("n_via", [1, 5, 50])
+def test_samples_pass_the_via_points_within_the_noise(n_via):
+    """Every sample is a draw of the exact posterior: at each via-point (points of a demonstration the
+    model was not built from) its spread is at most the stated noise (ν · the joint's std), the
+    executed mean meets the via-point within it, and the mean of the samples as closely as the
+    spread allows. 50 via-points (150 rows, z_lin has 30 directions) cannot all be met: the spread
+    still stays within the noise."""
+    prim, x, Y = split_model(k_l=30)
+    _, held_out = demos(n=1, d=3, seed=99)
+    idx = np.sort(np.random.default_rng(n_via).choice(len(x), n_via, replace=False))
+    xv, yv = x[idx], held_out[0, idx]
+    lat = prim.condition(xv, yv)
+    s = prim.sample(lat, xv, 400, rng=0)
+    noise_rad = prim.cfg.via_noise * prim.norm.y_std
+    spread = s.std(0)  # (n, d)
+    mean_err = np.abs(prim.mean_trajectory(lat, xv) - yv)
+    sample_mean_err = np.abs(s.mean(0) - yv)
+    assert np.all(spread <= 1.15 * noise_rad), spread / noise_rad
+    assert np.all(sample_mean_err <= mean_err + 5 * spread / np.sqrt(400) + 1e-12)
+    if n_via < 50:
+        assert np.all(mean_err <= noise_rad), mean_err / noise_rad
+        assert np.all(np.abs(s - yv) <= mean_err + 5 * noise_rad)  # every sample passes every via-point
+        assert np.all(spread >= 0.5 * noise_rad)  # and the samples are spread (not collapsed onto the mean)
+    # the same draws from the diagonal summary alone would miss by far more than the noise
+    diag = prim.sample(LatentGaussian(lat.mean, lat.var), xv, 400, rng=0)
+    assert diag.std(0).max() > 10 * noise_rad.max()
+
+
+def test_a_partial_via_point_leaves_the_free_joints_wide():
+    prim, x, Y = split_model()
+    xv, yv = x[[25]], Y[2, [25]]
+    mask = np.array([True, False, False])
+    full = prim.condition(xv, yv)
+    part = prim.condition(xv, yv, via_mask=mask)
+    none = prim.condition()
+    sd_full, sd_part, sd_none = (prim.linearized_std(lat, xv)[0] for lat in (full, part, none))
+    noise_rad = prim.cfg.via_noise * prim.norm.y_std
+    assert np.all(sd_full <= 1.01 * noise_rad)  # every joint pinned
+    assert sd_part[0] <= 1.01 * noise_rad[0]  # the constrained joint pinned
+    assert np.all(sd_part[1:] > 100 * noise_rad[1:]) and np.all(sd_part[1:] <= sd_none[1:] + 1e-12)
+    mc = prim.sample(part, xv, 400, rng=1)[:, 0]  # the samples agree with the linearized std
+    np.testing.assert_allclose(mc.std(0)[1:], sd_part[1:], rtol=0.15)
+
+
+# ------------------------------------------------------------------------------------------------
+# modes: a residual MLP that switches between two offsets with the sign of z_nl
+# ------------------------------------------------------------------------------------------------
+def bimodal_model():
+    """Two joints, k_l = 16, z_nl scalar. s·MLP(z_nl, x) = ±sin(πx)·(1, 0.5) (normalized = rad here):
+    hidden units ReLU(K z + sin πx), ReLU(K z − sin πx), ReLU(sin πx) with the output their
+    difference, so the two modes meet at x = 0 and x = 1. The via-point encoder says nothing about
+    z_nl (variance ~1e3), so q(z_nl) ≈ N(0.0005, 1) proposes both signs. The linear part is the PPCA
+    of small variations (std ≈ 0.05) around a ramp."""
+    rng = np.random.default_rng(0)
+    x = np.linspace(0, 1, 50)
+    Y = 0.3 * x[None, :, None] * np.array([1.0, 0.5]) + rng.normal(0, 0.05, (40, 3, 2))[:, None, 0] * x[None, :, None] \
+        + rng.normal(0, 0.05, (40, 2))[:, None] * (x ** 2)[None, :, None]
+    norm = Normalization(np.zeros(2), np.ones(2))
+    mean, a, _ = pca_basis(phase_basis(x, 8, 1.0, False), Y, 16, 0.05)
+    torch.manual_seed(0)
+    cfg = ModelConfig(n_joints=2, latent_dim=17, hidden=8, decoder_basis=8, latent_linear=16, residual_scale=1.0,
+                      phase_harmonics=1)  # phase features [x, sin πx, cos πx]
+    net = DeepProMPNet(cfg)
+    K = 1e4
+    with torch.no_grad():
+        net.basis.bias.copy_(torch.as_tensor(mean))
+        net.basis.weight.copy_(torch.as_tensor(a))
+        l1, l2, l3 = (m for m in net.decoder if isinstance(m, torch.nn.Linear))
+        for layer in (l1, l2, l3):
+            layer.weight.zero_()
+            layer.bias.zero_()
+        l1.weight[0, 0], l1.weight[0, 2] = K, 1.0  # input [z_nl, x, sin πx, cos πx]
+        l1.weight[1, 0], l1.weight[1, 2] = K, -1.0
+        l1.weight[2, 2] = 1.0
+        l2.weight[:3, :3] = torch.eye(3)
+        l3.weight[:, :3] = torch.tensor([[1.0, -1.0, -1.0], [0.5, -0.5, -0.5]])
+        net.head.weight[16].zero_()  # μ of z_nl from every encoder: 0.5, with variance softplus(1000) ≈ 1e3
+        net.head.bias[16] = 0.5
+        net.head.weight[17 + 16].zero_()
+        net.head.bias[17 + 16] = 1000.0
+    return DeepProMP(net, norm, ["a", "b"]), x
+
+
+def _modes(prim, traj_at_half):
+    """+1 / −1 per sample by the residual's sign at x = 0.5 (±(1, 0.5) there, the linear part's spread ~0.05),
+    0 for a sample between the modes."""
+    off = traj_at_half[:, 0] - 0.3 * 0.5  # the ramp's value of joint a at x = 0.5
+    return np.where(off > 0.5, 1, np.where(off < -0.5, -1, 0))
+
+
+def test_distinguishing_via_points_select_the_right_mode():
+    prim, x = bimodal_model()
+    for sign in (1.0, -1.0):
+        xv = np.array([0.5])
+        yv = np.array([[0.15 + sign * 1.0, 0.075 + sign * 0.5]])  # the ramp plus one mode's offset
+        lat = prim.condition(xv, yv)
+        modes = _modes(prim, prim.sample(lat, np.array([0.5]), 1000, rng=2)[:, 0])
+        assert np.mean(modes == sign) >= 0.98, np.mean(modes == sign)
+        assert _modes(prim, prim.mean_trajectory(lat, xv))[0] == sign
+        assert np.abs(prim.mean_trajectory(lat, xv) - yv).max() <= 1e-6
+        # the other mode would have to bend the linear part by 2 (40 of its std): weight ~0
+        assert lat.linear.weights[np.sign(lat.linear.candidates[:, 16]) != sign].sum() < 1e-6
+
+
+def test_ambiguous_via_points_keep_both_modes():
+    prim, x = bimodal_model()
+    xv = np.array([0.0, 1.0])  # where the two modes meet
+    yv = np.array([[0.0, 0.0], [0.3, 0.15]])
+    lat = prim.condition(xv, yv)
+    s = prim.sample(lat, np.array([0.0, 0.5, 1.0]), 1000, rng=3)
+    modes = _modes(prim, s[:, 1])
+    assert np.mean(modes != 0) >= 0.9 and np.mean(modes == 1) >= 0.25 and np.mean(modes == -1) >= 0.25, \
+        (np.mean(modes == 1), np.mean(modes == -1))
+    assert np.abs(s[:, [0, 2]] - yv).max() <= 5 * prim.cfg.via_noise  # every sample passes both via-points
+
+
+# ------------------------------------------------------------------------------------------------
+# refinement
+# ------------------------------------------------------------------------------------------------
+def test_refine_returns_at_once_when_the_conditioning_meets_the_via_points():
+    prim, x, Y = split_model()
+    xv, yv = x[[10, 30]], Y[5, [10, 30]]
+    lat = prim.condition(xv, yv, via_noise=1e-6)
+    res = prim.refine(lat, xv, yv)
+    assert res.iterations == 0 and res.latent is lat and res.reachable and res.max_error <= 1e-6
+    assert res.sample_mean_error <= 1e-5  # K = 16 samples of the exact posterior, each within ~1e-6 rad
+
+
+def test_refine_map_with_the_posterior_prior_counts_the_via_points_once():
+    """The prior of MAP refinement is what the latent knows without the via-points (q_c): with no
+    context it is N(0, I), for a plain latent of the shipped model and for a split latent; with a
+    context, the context's aggregation. The Laplace variance of a linear decoder is then exactly the
+    Gaussian posterior's (the old double counting made it smaller)."""
+    prim, x, Y = split_model(rs=0.0, contexts=(("obj", 2),))
+    xv, yv = x[[10, 30]], Y[5, [10, 30]]
+    lat = prim.condition(xv, yv)
+    a = prim.refine_map(lat, xv, yv, prior="posterior")
+    b = prim.refine_map(lat, xv, yv, prior="standard")
+    np.testing.assert_allclose(a.latent.mean, b.latent.mean, atol=1e-9)
+    np.testing.assert_allclose(a.latent.var, b.latent.var, atol=1e-12)
+    # the Laplace variance of z_lin is the exact posterior's at the same noise (σ_y · joint std)
+    exact = prim.condition(xv, yv, via_noise=prim.cfg.sigma_y)
+    np.testing.assert_allclose(a.latent.var[:30], exact.var[:30], rtol=1e-6)
+    obj = np.array([0.3, -0.2])
+    lat_c = prim.condition(xv, yv, contexts={"obj": obj})
+    q_c = prim.condition(contexts={"obj": obj})
+    c = prim.refine_map(lat_c, xv, yv, prior="posterior")
+    d = prim.refine_map(LatentGaussian(lat_c.mean, q_c.var), xv, yv, prior="standard")  # same start
+    d2 = prim.refine_map(LatentGaussian(q_c.mean, q_c.var), xv, yv)  # a latent that records no q_c is the prior
+    np.testing.assert_allclose(c.latent.mean, d2.latent.mean, atol=1e-8)
+    assert not np.allclose(c.latent.mean, d.latent.mean, atol=1e-6)  # the context's prior does count
+    shipped = DeepProMP.from_checkpoint(REPO / "models" / "gen3_lite_reach.safetensors")
+    xs, ys = np.array([0.5]), np.array([[-0.2, -0.3, 1.4, 1.5, 1.3, 0.0]])
+    plain = shipped.condition(xs, ys)
+    e = shipped.refine_map(plain, xs, ys, prior="posterior", max_iterations=5)
+    f = shipped.refine_map(plain, xs, ys, prior="standard", max_iterations=5)
+    np.testing.assert_allclose(e.latent.mean, f.latent.mean, atol=1e-12)
+
+
+# ------------------------------------------------------------------------------------------------
+# plain latents: a partial via-point, and the numbers of before
+# ------------------------------------------------------------------------------------------------
+def test_a_partial_via_point_on_the_shipped_model_leaves_the_free_joints_wider_than_a_full_one():
+    """The unconstrained joints of a partial via-point are filled with the mean; their encoding counts
+    with the share of joints constrained (2 of 6), so the free joints stay wider than under the full
+    via-point (filling and encoding them as observed made them narrower)."""
+    prim = DeepProMP.from_checkpoint(REPO / "models" / "gen3_lite_reach.safetensors")
+    x = np.linspace(0, 1, 50)
+    ctx = {"object": [0.1, -0.2, 0.05]}
+    xv, yv = np.array([0.5]), np.array([[-0.2, -0.3, 1.4, 1.5, 1.3, 0.0]])
+    mask = np.array([True, True, False, False, False, False])
+    full, part, none = (prim.condition(xv, yv, contexts=ctx), prim.condition(xv, yv, via_mask=mask, contexts=ctx),
+                        prim.condition(contexts=ctx))
+    for std in (lambda lat: prim.trajectory_std(lat, x, 256), lambda lat: prim.linearized_std(lat, x)):
+        sd_full, sd_part, sd_none = (std(lat)[:, 2:].mean() for lat in (full, part, none))
+        assert sd_part > 1.05 * sd_full and sd_part <= sd_none, (sd_part, sd_full, sd_none)
+
+
+def test_a_plain_latent_gives_the_numbers_of_before():
+    """latent_linear 0: the shipped reach model conditions, decodes, samples and refines as before the
+    split existed (values recorded from that code)."""
+    p = DeepProMP.from_checkpoint(REPO / "models" / "gen3_lite_reach.safetensors")
+    xv = np.array([0.0, 0.4, 1.0])
+    yv = np.array([[0.0, -0.3, 1.2, 1.5, 1.2, 0.0], [-0.2, -0.3, 1.4, 1.5, 1.3, 0.0], [-0.5, 0.2, 1.7, 1.4, 1.0, 0.1]])
+    lat = p.condition(xv, yv, via_weights=[1.0, 0.5, 2.0], contexts={"object": [0.1, -0.2, 0.05]})
+    np.testing.assert_allclose(lat.mean[:6], [-1.2813312593694772, -0.5863039306147826, 3.3302127964783343,
+                                              0.2946539171823265, 1.2899469059524369, 2.5455033697133476], rtol=1e-12)
+    np.testing.assert_allclose(lat.var[:6], [0.00011837138315284812, 0.008636088020507695, 0.0013140014060464558,
+                                             0.0007610055991347698, 0.0023007686555853255, 0.000655265361818924],
+                               rtol=1e-12)
+    xs = np.array([0.1, 0.5, 0.9])
+    np.testing.assert_allclose(p.mean_trajectory(lat, xs)[:, :3], [
+        [-0.2143277674678469, -0.10916183641748942, 1.534490735283217],
+        [-0.329565244365039, 0.013846314640751561, 1.5196830444636251],
+        [-0.40318864998600196, -0.12856466698857172, 1.599291046018895]], rtol=1e-12)
+    np.testing.assert_allclose(p.sample(lat, xs, 2, 3)[:, 1, :3], [
+        [-0.3316231103301681, 0.035427800941761706, 1.5080204108145585],
+        [-0.3286518686998462, 0.016072687539075564, 1.5207324201825252]], rtol=1e-12)
+    res = p.refine(lat, xv[1:2], yv[1:2], max_iterations=50)
+    assert res.iterations == 50
+    np.testing.assert_allclose(res.max_error, 0.03532625300850101, rtol=1e-9)
+    np.testing.assert_allclose(res.latent.mean[:4], [-1.6831646000369558, -0.9832936646787098, 4.234780435409478,
+                                                     0.6235264948927373], rtol=1e-9)
+    lat0 = p.condition(xv[:1], yv[:1])
+    np.testing.assert_allclose(lat0.mean[:4], [-1.2912444514041224, -0.48610579658541403, -0.44435548414919446,
+                                               0.1516109966006855], rtol=1e-12)
+    assert lat.linear is None
+
+
+# ------------------------------------------------------------------------------------------------
+# speed, and the server's handlers
+# ------------------------------------------------------------------------------------------------
+def test_conditioning_140_linear_dimensions_on_50_via_points_is_faster_than_promp():
+    """k_l = 140 (20 basis functions x 7 joints), 50 via-points x 7 joints: DeepProMP.condition plus the
+    100-point mean against ProMP's conditioning and mean on the same via-points, interleaved."""
+    prim, x, Y = split_model(k_l=140, k_n=8, nb=20, d=7, rs=0.2, hidden=128, contexts=(("obj", 3),))
+    promp = ProMP(7, n_basis=20).fit(Y, x)
+    idx = np.arange(0, 50)
+    xv, yv, x100, obj = x[idx], Y[3, idx] + 0.01, np.linspace(0, 1, 100), np.array([0.1, 0.2, 0.0])
+    lat = prim.condition(xv, yv, contexts={"obj": obj})
+    assert lat.linear.form == "information" and np.all(np.isfinite(lat.mean))
+    deep, pro = [], []
+    for _ in range(5):
+        for fn, out in ((lambda: prim.mean_trajectory(prim.condition(xv, yv, contexts={"obj": obj}), x100), deep),
+                        (lambda: promp.condition(xv, yv, noise_var=1e-6).mean_trajectory(x100), pro)):
+            t0 = time.perf_counter()
+            fn()
+            out.append(time.perf_counter() - t0)
+    assert np.median(deep) < np.median(pro), (np.median(deep), np.median(pro))
+
+
+SPEC = load_robot("gen3_lite")
+
+
+@pytest.fixture(scope="module")
+def split_core(tmp_path_factory):
+    """The server core serving a 6-joint split-latent primitive of the Gen3 lite (demos around home)."""
+    prim, x, Y = split_model(k_l=30, k_n=4, nb=8, d=6, names=list(SPEC.joint_names), y_mean=SPEC.home)
+    path = save_checkpoint(tmp_path_factory.mktemp("split") / "split.safetensors", prim.net, prim.norm,
+                           prim.joint_names)
+    cfg = ServerConfig(preview_std_points=50)  # the std at every preview point (no interpolation)
+    core = PrimitiveServerCore({"split": load_primitive(PrimitiveEntry("split", str(path)), SPEC.joint_names,
+                                                        pathlib.Path)}, cfg, robot_limits(SPEC, cfg))
+    return core, x, Y
+
+
+def test_the_server_conditions_a_split_latent_exactly_and_samples_its_posterior(split_core):
+    core, x, Y = split_core
+    vps = [ViaPointIn(float(x[i]), Y[4, i], np.zeros(0, bool)) for i in (10, 35)]
+    r = core.condition(ConditionRequest("split", vps, preview_points=50))
+    assert r.code == Code.SUCCESS and r.refine_max_error <= 1e-6, r.message
+    # the preview's std pinches to the noise at the via-points (the full z_lin covariance), wide between
+    i = np.argmin(np.abs(r.preview.phases - x[10]))
+    assert r.preview.std[i].max() < 1e-3 and r.preview.std[25].max() > 1e-2
+    s = core.sample(SampleRequest(r.handle, n_samples=64, n_points=50, seed=1)).samples  # grid = the demos' phases
+    assert np.abs(s[:, [10, 35]] - Y[4, [10, 35]]).max() < 1e-3
+    assert s[:, 25].std(0).max() > 1e-2
