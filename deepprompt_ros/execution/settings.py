@@ -43,7 +43,9 @@ class LoopSettings:
                                         "(continuous phase velocity).", min=0.0, max=60.0, unit="s")
     # -- faults: the goal brakes to rest
     stale_timeout: float = param(0.2, "No joint_states for this long: execution stops (brakes) with "
-                                 "ROBOT_STATE_STALE; Execute is refused if the last message is older.",
+                                 "ROBOT_STATE_STALE; Execute is refused if the last message is older. A goal at most "
+                                 "this long after the last published command starts from that command, "
+                                 "else from the measured state.",
                                  min=0.001, max=60.0, unit="s")
     max_tracking_error: float = param(0.0, "Abort with LIMIT_VIOLATION (braking) when |commanded - measured| "
                                       "exceeds this on any joint; 0 = no bound.", min=0.0, max=10.0, unit="rad")
