@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from deepprompt_ros.baselines.promp import ProMP
-from deepprompt_ros.common.results import Code
+from deepprompt_ros.common.results import Code, RequestError
 from deepprompt_ros.model.checkpoint import Normalization, save_checkpoint
 from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
 from deepprompt_ros.model.phase import phase_basis
@@ -21,7 +21,7 @@ from deepprompt_ros.primitive.linear_conditioning import condition_split
 from deepprompt_ros.robots.spec import load_robot
 from deepprompt_ros.server.config import ServerConfig, robot_limits
 from deepprompt_ros.server.primitives_file import PrimitiveEntry, load_primitive
-from deepprompt_ros.server.requests import ConditionRequest, SampleRequest, ViaPointIn
+from deepprompt_ros.server.requests import BlendRequest, ConditionRequest, SampleRequest, ViaPointIn
 from deepprompt_ros.server.service import PrimitiveServerCore
 from deepprompt_ros.training.basis import pca_basis
 
@@ -386,3 +386,15 @@ def test_the_server_conditions_a_split_latent_exactly_and_samples_its_posterior(
     s = core.sample(SampleRequest(r.handle, n_samples=64, n_points=50, seed=1)).samples  # grid = the demos' phases
     assert np.abs(s[:, [10, 35]] - Y[4, [10, 35]]).max() < 1e-3
     assert s[:, 25].std(0).max() > 1e-2
+
+
+def test_the_server_refuses_an_overflowing_request_and_blends_split_latents(split_core):
+    core, x, Y = split_core
+    huge = [ViaPointIn(0.5, np.full(6, 1e300), np.zeros(0, bool))]
+    with pytest.raises(RequestError) as info:
+        core.condition(ConditionRequest("split", huge))
+    assert info.value.code == Code.INVALID_REQUEST and "NaN or inf (an overflow)" in info.value.message
+    a = core.condition(ConditionRequest("split", [ViaPointIn(0.2, Y[1, 10], np.zeros(0, bool))]))
+    b = core.condition(ConditionRequest("split", [ViaPointIn(0.8, Y[2, 40], np.zeros(0, bool))]))
+    blended = core.blend(BlendRequest(a.handle, b.handle, preview_points=20))  # on the diagonal summaries (Eq. 4)
+    assert np.all(np.isfinite(blended.preview.mean)) and np.all(blended.preview.std > 0)

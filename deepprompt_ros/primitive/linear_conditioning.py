@@ -66,21 +66,24 @@ def whitened_posterior(g: np.ndarray, d: np.ndarray) -> tuple[str, np.ndarray, n
         chol = np.linalg.cholesky(s)
         wv = _lower_solve(chol, np.concatenate([g, d.T], 1))
         w, v = wv[:, :k], wv[:, k:]
-        return "observation", chol, (w.T @ v).T, -0.5 * (v * v).sum(0), np.clip(1.0 - (w * w).sum(0), 0.0, 1.0)
+        qdiag = np.maximum(1.0 - np.einsum("mk,mk->k", w, w), 0.0)
+        return "observation", chol, (w.T @ v).T, -0.5 * np.einsum("mc,mc->c", v, v), qdiag
     # information form: L⁻¹ [I | Gᵀdᵀ] gives Q = L⁻ᵀL⁻¹ and u = L⁻ᵀ L⁻¹ Gᵀ d
     chol = np.linalg.cholesky(np.eye(k) + g.T @ g)
     lv = _lower_solve(chol, np.concatenate([np.eye(k), g.T @ d.T], 1))
     li, v = lv[:, :k], lv[:, k:]
     u = (li.T @ v).T
     res = d - u @ g.T
-    return "information", chol, u, -0.5 * ((res * res).sum(1) + (u * u).sum(1)), (li * li).sum(0)
+    return ("information", chol, u, -0.5 * (np.einsum("cm,cm->c", res, res) + np.einsum("ck,ck->c", u, u)),
+            np.einsum("jk,jk->k", li, li))
 
 
 def _lower_solve(chol: np.ndarray, b: np.ndarray) -> np.ndarray:
     """L⁻¹ b for a lower-triangular L by forward substitution (LAPACK trsm through torch, float64; numpy's
     solve would factor L again)."""
-    return torch.linalg.solve_triangular(torch.from_numpy(chol), torch.from_numpy(np.ascontiguousarray(b)),
-                                         upper=False).numpy()
+    # solved as Xᵀ Lᵀ = bᵀ: the transposed views are column-major, as LAPACK takes them (no copies)
+    return torch.linalg.solve_triangular(torch.from_numpy(chol).T, torch.from_numpy(b).T, upper=True,
+                                         left=False).numpy().T
 
 
 _EPS_CACHE: dict[tuple[int, int, int], np.ndarray] = {}
@@ -160,10 +163,18 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
         h, sigma, r = np.zeros((0, k_l)), np.ones(0), np.zeros((candidates_nl.shape[0], 0))
     g = h * (s / sigma[:, None])  # whitened design
     d = (r - h @ m) / sigma  # whitened residuals of the candidates
-    if not (np.isfinite(g.sum()) and np.isfinite(d.sum())):  # an overflow: no distribution to give
-        nan = np.full(cfg.latent_dim, np.nan)
-        return LatentGaussian(nan, nan.copy(), context_mean=context_mean, context_var=context_var)
-    form, chol, u, loglik, qdiag = whitened_posterior(g, d)
+    nan = np.full(cfg.latent_dim, np.nan)
+    overflow = LatentGaussian(nan, nan, context_mean=context_mean, context_var=context_var)  # no distribution to give
+    if not (np.isfinite(g.sum()) and np.isfinite(d.sum())):
+        return overflow
+    try:
+        form, chol, u, loglik, qdiag = whitened_posterior(g, d)
+    except np.linalg.LinAlgError as exc:  # I + GGᵀ is positive definite unless rounding breaks it
+        raise ValueError(f"the exact conditioning of the linear latent block failed ({exc}) with via-point noise "
+                         f"{noise:g}: expected via-points of the size of the training data and a noise of at least "
+                         "about 1e-10 (normalized joint units)") from None
+    if not (np.isfinite(loglik.sum()) and np.isfinite(u.sum())):
+        return overflow
     weights = np.exp(loglik - loglik.max())
     weights /= weights.sum()
     cands = np.concatenate([m + u * s, candidates_nl], 1)  # (C, k)
@@ -228,7 +239,7 @@ def refine_split(net: "NumpyNet", latent: LatentGaussian, x: np.ndarray, y: np.n
                 lat = condition_split(net, latent.context_mean, latent.context_var, latent.mean, latent.var, x, y,
                                       np.ones(x.shape[0]), mask, noise, candidates_nl=cands)
             err = error(lat)
-        except np.linalg.LinAlgError:
+        except ValueError:  # the factorization failed at this noise
             reason = "the conditioning's factorization failed at a smaller noise"
             history.append(best_err)
             break
