@@ -32,7 +32,7 @@ from deepprompt_ros.model.network import DeepProMPNet
 from deepprompt_ros.primitive.blending import blend_gaussians
 from deepprompt_ros.primitive.inputs import check_images, check_phases, check_weights
 from deepprompt_ros.primitive.latent import LatentGaussian
-from deepprompt_ros.primitive.linear_conditioning import condition_split
+from deepprompt_ros.primitive.linear_conditioning import condition_split, linear_block_variance
 from deepprompt_ros.primitive.numpy_net import NumpyNet
 from deepprompt_ros.primitive.refinement import RefinementResult, refine_exact, refine_map
 
@@ -344,12 +344,15 @@ class DeepProMP:
             return np.sqrt(((jac * latent.std) ** 2).sum(axis=-1))
         block = latent.linear
         _, j_lin = self._np.linear_design(x)  # (T, d, k_l)
-        var = np.einsum("tdk,kl,tdl->td", j_lin, block.cov(), j_lin)
-        if block.candidates.shape[0] > 1:
-            y = self.decode(block.candidates, x)  # (C, T, d)
-            y_bar = np.einsum("c,ctd->td", block.weights, y)
-            var += np.einsum("c,ctd->td", block.weights, (y - y_bar) ** 2)
-        return np.sqrt(np.maximum(var, 0.0))
+        var = linear_block_variance(block, j_lin.reshape(-1, block.k_lin)).reshape(x.shape[0], -1)
+        w = block.weights
+        keep = w > 1e-12 * w.max()  # candidates that weigh anything (often one dominates)
+        if keep.sum() > 1:
+            w = w[keep] / w[keep].sum()
+            y = self.decode(block.candidates[keep], x).reshape(w.shape[0], -1)  # (C', T·d)
+            dev = y - w @ y
+            var += (w @ (dev * dev)).reshape(var.shape)
+        return np.sqrt(var)
 
     def trajectory_std(self, latent: LatentGaussian, x, n_samples: int = 64, seed: int = 0) -> np.ndarray:
         """Per-point standard deviation of the trajectory distribution (Monte Carlo), shape (T, d)."""

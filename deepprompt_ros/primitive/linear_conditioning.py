@@ -33,7 +33,7 @@ from deepprompt_ros.primitive.latent import LatentGaussian, LinearBlock
 if TYPE_CHECKING:
     from deepprompt_ros.primitive.numpy_net import NumpyNet
 
-__all__ = ["whitened_posterior", "condition_split", "SplitRefinement", "refine_split"]
+__all__ = ["whitened_posterior", "condition_split", "linear_block_variance", "SplitRefinement", "refine_split"]
 
 
 def whitened_posterior(g: np.ndarray, d: np.ndarray) -> tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -183,6 +183,21 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
     best = int(np.argmax(loglik))
     var = np.concatenate([s ** 2 * qdiag, all_var[k_l:]])
     return LatentGaussian(cands[best].copy(), var, linear=block, context_mean=context_mean, context_var=context_var)
+
+
+def linear_block_variance(block: LinearBlock, jac: np.ndarray) -> np.ndarray:
+    """diag(J Σ Jᵀ) for the posterior covariance Σ of z_lin and rows J (n, k_l), without forming Σ:
+    with a = J diag(scale), aᵀQa = ‖a‖² − ‖L⁻¹ G aᵀ‖² (observation form) or ‖L⁻¹ aᵀ‖² (information
+    form), per row; shape (n,), >= 0."""
+    a = jac * block.scale
+    if block.form == "information":
+        b = _lower_solve(block.chol, np.ascontiguousarray(a.T))
+        return np.einsum("kn,kn->n", b, b)
+    out = np.einsum("nk,nk->n", a, a)
+    if block.design.shape[0]:
+        b = _lower_solve(block.chol, block.design @ a.T)  # W aᵀ, W = L⁻¹G
+        out -= np.einsum("mn,mn->n", b, b)
+    return np.maximum(out, 0.0)
 
 
 @dataclasses.dataclass(frozen=True)
