@@ -63,6 +63,7 @@ def tiny_reach_model(tmp_path_factory) -> pathlib.Path:
 
     path = tmp_path_factory.mktemp("tiny_reach") / "reach.safetensors"
     train(context_reach_demos(n_demos=40, n_points=50, seed=0),
-          TrainConfig(steps=300, latent_dim=8, hidden=32, val_every=300, n_points=50, max_via_points=5, threads=1),
+          TrainConfig(steps=300, latent_dim=8, hidden=32, val_every=300, n_points=50, max_via_points=5, threads=1,
+                      auto_select=False),  # the architecture as given: a plain decoder, latent 8
           out_path=path, log=lambda m: None)
     return path

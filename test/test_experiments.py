@@ -132,55 +132,23 @@ def test_small_data_numbers_are_consistent(tiny_run):
     np.testing.assert_allclose(res["check"], res["mse"]["deepprompt"], rtol=1e-9)
     # ProMP conditioned on 5 points beats its start-point-only conditioning
     assert res["mse"]["promp"][0] < res["mse"]["promp_start"][0]
-    # the residual decoder's latent size / regularizer / MAP noise come from cross-validation on the
-    # training demos (argmin of its table), and reach the trained model and the MAP row
-    cv = res["cv"]
-    assert cv["n_demos"] == res["n_train"] and cv["folds"] == res["n_train"]  # leave-one-out
-    best = min(cv["table"], key=lambda r: r[3])
-    assert [cv["latent_dim"], cv["basis_cov_reg"], cv["noise_std"], cv["cv_mse"], cv["basis_cov_reg_units"]] == best
-    assert res["config"]["latent_dim"] == cv["latent_dim"] and res["config"]["basis_cov_reg"] == cv["basis_cov_reg"]
-    assert res["config"]["basis_cov_reg_units"] == cv["basis_cov_reg_units"]
-    assert {r[4] for r in cv["table"]} == {"normalized", "raw"}
-    assert res["map_noise_std"] == [cv["noise_std"]]
-    # the residual is judged by 3-fold cross-validation of the training on the training demos and kept only
-    # if its per-demo improvement exceeds one standard error
-    assert res["residual_folds"] == 3
-    (val_on, val_off), = res["residual_val"]
-    (diff, se), = res["residual_val_diff_se"]
-    assert diff == pytest.approx(val_on - val_off, rel=1e-9, abs=1e-15) and se > 0
-    assert res["residual_used"] == [res["config"]["residual_scale"] if diff + se < 0 else 0.0]
-    assert "cv" not in res["plain"] or not res["plain"]["cv"]
-
-
-def test_the_residual_is_kept_only_beyond_one_standard_error():
-    from experiments.small_data import keep_residual
-
-    off = np.array([[1.0, 2.0, 3.0, 4.0]] * 2)  # (draws, demos)
-    keep, diff, se = keep_residual(off - 0.5, off)  # better on every demo by the same amount: SE 0
-    assert keep and diff == pytest.approx(-0.5) and se == pytest.approx(0.0)
-    noisy = off + np.array([-0.6, 0.4, -0.5, 0.5])  # mean -0.05, SE ≈ 0.29: within noise → the simpler model
-    keep, diff, se = keep_residual(noisy, off)
-    assert not keep and diff == pytest.approx(-0.05) and se == pytest.approx(np.std([-0.6, 0.4, -0.5, 0.5], ddof=1) / 2)
-    assert not keep_residual(off + 0.1, off)[0]
-    keep, _, se = keep_residual(np.array([[1.0], [2.0]]), np.array([[1.5], [2.5]]))  # one demo: SE over the draws
-    assert keep and se == 0.0
-    with pytest.raises(ValueError, match="equal"):
-        keep_residual(off[:, :3], off)
-
-
-def test_residual_cross_validation_holds_out_every_training_demo_once():
-    from deepprompt_ros.training.config import TrainConfig
-    from experiments.small_data import RESIDUAL_CONFIG, default_data, residual_cv_errors
-
-    train, _ = default_data(12, 2)
-    cfg = TrainConfig(**{**RESIDUAL_CONFIG, "latent_dim": 16}, hidden=16, steps=4, val_every=2, batch_size=4,
-                      threads=1, n_points=40)
-    on, off = residual_cv_errors(train, cfg, 3, n_via=3, noise_factor=float("nan"), prior="standard", n_points=40,
-                                 noise_std=1e-2, draws=2)
-    assert on.shape == off.shape == (2, 12) and np.all(np.isfinite(on)) and np.all(off > 0)
-    assert np.abs(on - off).max() > 0  # the trained residual changes the fit
-    with pytest.raises(ValueError, match="folds"):
-        residual_cv_errors(train, cfg, 7, 3, float("nan"), "standard", 40, 1e-2, 2)
+    # the training's own model selection (auto_select) on the 27 training demos of the 30 (3 validate), recorded
+    # per seed: the linear part is the cross-validation's argmin, the residual decision the one-SE rule's
+    (sel,) = res["selection"]
+    lin, resid = sel["linear_part"], sel["residual"]
+    cv = lin["cross_validation"]
+    assert cv["n_demos"] == 27 and resid["n_val"] == 3
+    best = min(cv["table"], key=lambda r: r[5])  # or ProMP's form when the best is not better beyond one SE
+    ref = cv.get("reference")
+    chosen = best if ref is None or ref["best_kept"] else ref["row"]
+    assert [lin[k] for k in ("decoder_basis", "latent_linear", "basis_cov_reg", "basis_cov_reg_units", "via_noise")] \
+        == chosen[:5]
+    assert resid["kept"] == (resid["relative_difference"] + resid["standard_error"] < 0)
+    assert res["residual_used"] == [1.0 if resid["kept"] else 0.0]
+    # MAP refinement uses the chosen via-point noise, per joint in rad; ProMP's own choice is recorded too
+    assert len(res["map_noise_std"][0]) == 7 and min(res["map_noise_std"][0]) > 0
+    assert res["promp_selection"]["n_demos"] == 27 and res["promp_selection"]["folds"] == 5
+    assert not res["plain"]["selection"] and res["plain"]["residual_used"] == [1.0]
 
 
 def test_bimodal_cases_parsed_from_the_bench_script(tiny_run):
@@ -233,8 +201,8 @@ def _results(out, names=UNIT_EXPERIMENTS):
         res["refinement"] = {k: c["per_set"] for k, c in _load(out, "refinement")["curves"].items()}
     if "small_data" in names:
         sd = _load(out, "small_data")
-        keys = ("mse", "check", "refine_reachable", "map_noise_std", "residual_used", "residual_val", "config")
-        res["small_data"] = {name: {k: d[k] for k in keys} for name, d in (("residual", sd), ("plain", sd["plain"]))}
+        keys = ("mse", "check", "refine_reachable", "map_noise_std", "residual_used", "selection", "config")
+        res["small_data"] = {name: {k: d[k] for k in keys} for name, d in (("auto", sd), ("plain", sd["plain"]))}
     return res
 
 
@@ -242,9 +210,9 @@ def test_unit_files_and_timings(tiny_run):
     out, stdout = tiny_run
     units = _units(out)
     assert set(units) == set(UNIT_EXPERIMENTS)
-    # tiny: 6 models x 2 seeds; 3 N x 2 initializations; small data: cross-validation + 1 seed x 2 decoders
+    # tiny: 6 models x 2 seeds; 3 N x 2 initializations; small data: 1 seed x 2 configurations
     assert {k: (u["units"], u["computed"], u["reused"]) for k, u in units.items()} == {
-        "reconstruction": (12, 12, 0), "refinement": (6, 6, 0), "small_data": (3, 3, 0)}
+        "reconstruction": (12, 12, 0), "refinement": (6, 6, 0), "small_data": (2, 2, 0)}
     files = sorted(p.name for p in (out / "units" / "reconstruction").iterdir())
     assert len(files) == 12 and all(f.endswith(".json") for f in files)  # no temp files left
     assert any(f.startswith("gen3_lite_reach__deepprompt__s0__") for f in files)
@@ -267,7 +235,7 @@ def test_second_invocation_reuses_every_unit(tiny_run, tmp_path):
     stdout = _cli(out, "--only", *UNIT_EXPERIMENTS)
     units = _units(out)
     assert all(u["computed"] == 0 and u["reused"] == u["units"] > 0 for u in units.values()), units
-    assert stdout.count("(reused)") == 12 + 6 + 3
+    assert stdout.count("(reused)") == 12 + 6 + 2
     assert "units: 12, 12 reused from" in stdout
     # the same tables, wall times of the units included (they are the stored ones)
     for name in UNIT_EXPERIMENTS:

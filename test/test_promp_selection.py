@@ -11,7 +11,7 @@ from deepprompt_ros.baselines.promp_selection import COV_REG_SCALES, VIA_NOISES,
 from deepprompt_ros.baselines.registry import MODEL_CLASSES
 from deepprompt_ros.data.demo_dataset import DemoDataset
 from deepprompt_ros.data.demonstration import Demonstration
-from deepprompt_ros.training.basis import cv_score, cv_via_sets, fold_assignment
+from deepprompt_ros.training.basis import PROMP_FORM, cv_score, cv_via_sets, fold_assignment
 from deepprompt_ros.training.config import TrainConfig
 
 T = 50
@@ -82,6 +82,8 @@ def _dataset(Y: np.ndarray, name: str, scale: float = 1.0) -> DemoDataset:
 
 def test_the_promp_baseline_selects_on_its_training_split_only_and_keeps_the_choice_in_its_file(tmp_path):
     assert ProMPModel in MODEL_CLASSES and ProMPModel().options.cov_reg_scale == "auto"  # the experiments' default
+    # DeepProMP's linear part departs from this baseline's form only on evidence (training.basis.PROMP_FORM)
+    assert (ProMPModel().options.n_basis, "raw") == PROMP_FORM
     train = _dataset(weight_demos(12, 4), "train")
     cfg = TrainConfig(n_points=T, seed=3)
     logged = []

@@ -16,7 +16,7 @@ from deepprompt_ros.model.phase import phase_basis
 from deepprompt_ros.primitive.deep_promp import DeepProMP
 from deepprompt_ros.primitive.latent import LatentGaussian
 from deepprompt_ros.baselines.promp import ProMP
-from deepprompt_ros.training.basis import cv_basis_hyperparameters, init_basis_pca, linear_map_condition, pca_basis
+from deepprompt_ros.training.basis import init_basis_pca, linear_map_condition, pca_basis
 from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.loop import train
 from deepprompt_ros.training.tensors import fit_normalization, to_tensors
@@ -154,8 +154,8 @@ def test_pca_init_reproduces_the_demos_weight_covariance():
 
 def test_training_with_a_fixed_pca_basis_keeps_it_and_the_config_reaches_the_checkpoint(tmp_path):
     ds = _demos(16)
-    cfg = TrainConfig(latent_dim=8, hidden=16, steps=20, val_every=10, batch_size=8, threads=1, decoder_basis=10,
-                      basis_init="pca", basis_lr_scale=0.0, residual_scale=0.1, basis_cov_reg=0.05)
+    cfg = TrainConfig(auto_select=False, latent_dim=8, hidden=16, steps=20, val_every=10, batch_size=8, threads=1,
+                      decoder_basis=10, basis_init="pca", basis_lr_scale=0.0, residual_scale=0.1, basis_cov_reg=0.05)
     net, norm, _ = train(ds, cfg, out_path=tmp_path / "m.safetensors")
     train_ds, _ = ds.split(max(1, len(ds) // 10), seed=0)
     ref = DeepProMPNet(net.cfg)
@@ -202,46 +202,6 @@ def test_closed_form_linear_map_is_the_deployed_map_refinement_in_joint_units():
     assert np.abs(wrong - closed).max() > 1e-3
 
 
-def test_cross_validation_scores_are_held_out_gaussian_conditioning_and_the_minimum_is_chosen():
-    ds = _demos(9, seed=1)
-    grid = dict(latent_dims=(4, 30), cov_regs=(0.0, 0.05), noise_stds=(1e-3, 0.3))
-    cv = cv_basis_hyperparameters(ds, 50, 10, latent_dims=grid["latent_dims"], cov_regs=grid["cov_regs"],
-                                  noise_stds=grid["noise_stds"], n_via=3, folds=3, draws=2, seed=4)
-    assert cv["folds"] == 3 and len(cv["table"]) == 8
-    best = min(cv["table"], key=lambda r: r[3])
-    assert (cv["latent_dim"], cv["basis_cov_reg"], cv["noise_std"], cv["cv_mse"]) == tuple(best[:4])
-    assert best[4] == cv["basis_cov_reg_units"] == "normalized"  # the default: one units value
-    # recompute one entry independently: full-rank latent (30 = 10 RBFs × 3 joints) = weight-space Gaussian
-    # N(b, A Aᵀ) conditioned on the held-out demo's via-points (the fold assignment of the function)
-    k, c, s = 30, 0.05, 1e-3
-    n = len(ds)
-    fold_of = np.empty(n, dtype=int)
-    fold_of[np.random.default_rng(4).permutation(n)] = np.arange(n) % 3
-    x = np.linspace(0, 1, 50)
-    phi = phase_basis(x, 10, 1.0, False)
-    y = np.stack([d.resampled(50) for d in ds.demos])
-    errs = []
-    for f in range(3):
-        tr = np.flatnonzero(fold_of != f)
-        norm = fit_normalization(DemoDataset(tuple(ds.demos[i] for i in tr), "t"), 50)
-        yn = (y - norm.y_mean) / norm.y_std
-        mean, a, _ = pca_basis(phi, yn[tr], k, c)
-        cov = a @ a.T
-        for i in np.flatnonzero(fold_of == f):
-            for r in range(2):
-                sel = np.sort(np.random.default_rng([4, i, r]).choice(50, 3, replace=False))
-                H = np.kron(phi[sel], np.eye(3))  # rows (via, joint), weights b·d + j
-                R = np.diag(np.tile((s / norm.y_std) ** 2, len(sel)))
-                w = mean + cov @ H.T @ np.linalg.solve(H @ cov @ H.T + R, yn[i, sel].reshape(-1) - H @ mean)
-                pred = (phi @ w.reshape(10, 3)) * norm.y_std + norm.y_mean
-                errs.append(((pred - y[i]) ** 2).mean())
-    entry = [r for r in cv["table"] if r[:3] == [k, c, s]][0]
-    assert entry[3] == pytest.approx(np.mean(errs), rel=1e-6)
-    # a noise far above the demos' spread ignores the via-points: worse than a tight fit
-    loose = [r for r in cv["table"] if r[:3] == [k, c, 0.3]][0]
-    assert loose[3] > entry[3]
-
-
 def test_with_residual_scale_switches_the_mlp_part_and_keeps_the_rest():
     net, prim = _prim(rs=0.3)
     x = np.linspace(0, 1, 7)
@@ -281,8 +241,8 @@ def test_pca_regularizer_in_rad_is_lambda_identity_in_joint_units():
 
 def test_training_with_the_regularizer_in_rad_initializes_from_the_joint_stds():
     ds = _demos(16)
-    cfg = TrainConfig(latent_dim=30, hidden=16, steps=5, val_every=5, batch_size=8, threads=1, decoder_basis=10,
-                      basis_init="pca", basis_lr_scale=0.0, residual_scale=0.1, basis_cov_reg=0.05,
+    cfg = TrainConfig(auto_select=False, latent_dim=30, hidden=16, steps=5, val_every=5, batch_size=8, threads=1,
+                      decoder_basis=10, basis_init="pca", basis_lr_scale=0.0, residual_scale=0.1, basis_cov_reg=0.05,
                       basis_cov_reg_units="raw")
     net, norm, _ = train(ds, cfg)
     train_ds, _ = ds.split(max(1, len(ds) // 10), seed=0)
@@ -294,18 +254,3 @@ def test_training_with_the_regularizer_in_rad_initializes_from_the_joint_stds():
     np.testing.assert_allclose(w @ w.T, a @ a.T, atol=1e-5)
     with pytest.raises(ValueError, match="basis_cov_reg_units"):
         TrainConfig(basis_cov_reg_units="rad")
-
-
-def test_cross_validation_chooses_the_regularizer_units_too():
-    ds = _demos(9, seed=1)
-    kw = dict(latent_dims=(30,), cov_regs=(0.05, 0.2), noise_stds=(1e-3,), n_via=3, folds=3, draws=2, seed=4)
-    both = cv_basis_hyperparameters(ds, 50, 10, cov_reg_units=("normalized", "raw"), **kw)
-    norm_only = cv_basis_hyperparameters(ds, 50, 10, **kw)
-    assert len(both["table"]) == 4 and {r[4] for r in both["table"]} == {"normalized", "raw"}
-    assert [r for r in both["table"] if r[4] == "normalized"] == norm_only["table"]
-    best = min(both["table"], key=lambda r: r[3])
-    assert (both["basis_cov_reg"], both["basis_cov_reg_units"], both["cv_mse"]) == (best[1], best[4], best[3])
-    raw = [r[3] for r in both["table"] if r[4] == "raw"]
-    assert all(np.isfinite(raw)) and raw != [r[3] for r in norm_only["table"]]
-    with pytest.raises(ValueError, match="cov_reg_units"):
-        cv_basis_hyperparameters(ds, 50, 10, cov_reg_units=("metres",), **kw)

@@ -19,7 +19,7 @@ from deepprompt_ros.training.loop import train
 def test_training_reduces_validation_error(objective):
     ds = bimodal_sine(60, n_points=50, seed=1)
     cfg = TrainConfig(objective=objective, steps=240, val_every=60, n_points=50, hidden=64, latent_dim=8,
-                      threads=1, consistency_weight=1.0 if objective == "np" else 0.0)
+                      threads=1, consistency_weight=1.0 if objective == "np" else 0.0, auto_select=False)
     t0 = time.perf_counter()
     net, norm, hist = train(ds, cfg, log=lambda s: None)
     wall = time.perf_counter() - t0
@@ -36,7 +36,7 @@ def test_training_reduces_validation_error(objective):
 
 def test_train_cli_writes_checkpoint_with_provenance(tmp_path):
     cfg = tmp_path / "cfg.yaml"
-    cfg.write_text("steps: 30\nval_every: 15\nhidden: 32\nlatent_dim: 4\nthreads: 1\nn_points: 40\n")
+    cfg.write_text("steps: 30\nval_every: 15\nhidden: 32\nlatent_dim: 4\nthreads: 1\nn_points: 40\nauto_select: false\n")
     out = tmp_path / "m.safetensors"
     proc = subprocess.run([sys.executable, "-m", "deepprompt_ros.training.cli", "--builtin", "bimodal_sine",
                            "--config", str(cfg), "--out", str(out)], capture_output=True, text=True, timeout=300)
@@ -166,7 +166,7 @@ def test_architecture_parameters_are_declared_once_in_the_model_config():
 
     model = {s.name: s for s in specs_of(ModelConfig)}
     shared = [s for s in specs_of(TrainConfig) + specs_of(ConcatNetConfig) if s.name in model]
-    assert len(shared) == 9 + 7 and all(s == model[s.name] for s in shared)
+    assert len(shared) == 11 + 7 and all(s == model[s.name] for s in shared)
     for make in (lambda: TrainConfig(decoder_basis=1), lambda: ModelConfig(n_joints=1, decoder_basis=1)):
         with pytest.raises(ConfigError, match=r"decoder_basis = 1: expected 0 \(no linear basis\) or >= 2"):
             make()

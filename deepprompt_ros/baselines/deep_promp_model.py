@@ -3,7 +3,6 @@ an adapter over :func:`deepprompt_ros.training.loop.train` and
 :class:`deepprompt_ros.primitive.deep_promp.DeepProMP` whose files are ordinary DeepProMP checkpoints."""
 from __future__ import annotations
 
-import dataclasses
 from typing import Callable
 
 from deepprompt_ros.baselines.interface import (InputSpec, MovementPrimitiveModel, provenance,
@@ -34,9 +33,11 @@ class DeepProMPModel(MovementPrimitiveModel):
 
     def fit(self, train_ds, config, val_ds=None):
         train_ds, val_ds = split_for_validation(train_ds, config, val_ds)
-        net, norm, hist = train(train_ds, config, out_path=None, log=self.log or (lambda s: None), val_ds=val_ds)
+        info = {}
+        net, norm, hist = train(train_ds, config, out_path=None, log=self.log or (lambda s: None), val_ds=val_ds,
+                                info=info)
         self.history = hist
-        meta = {"train_config": dataclasses.asdict(config), "provenance": provenance(train_ds, val_ds),
+        meta = {**info, "provenance": provenance(train_ds, val_ds),
                 "metrics": {"best_val_mse_rad2": min(h["val"]["mean"] for h in hist)}, "model_kind": self.kind}
         self._set(DeepProMP(net, norm, train_ds.joint_names, name=self.kind, metadata=meta))
         return self

@@ -21,16 +21,17 @@ import dataclasses
 import numpy as np
 
 from deepprompt_ros.baselines.promp import ProMP
-from deepprompt_ros.training.basis import cv_score, cv_via_sets, fold_assignment
+from deepprompt_ros.training.basis import AUTO_COV_REGS, CV_VIA_NOISES, cv_score, cv_via_sets, fold_assignment
 
 __all__ = ["ProMPSelection", "select_promp", "COV_REG_SCALES", "VIA_NOISES", "joint_spread"]
 
-#: Grid of ``cov_reg_scale``: from none (the demos' sample covariance alone) to λ equal to the mean
-#: weight variance (few demos, far from spanning the weight space).
-COV_REG_SCALES = (0.0, 1e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0)
-#: Grid of the via-point noise (normalized joint units): from a point met all but exactly to one a
-#: tenth of the joint's spread away.
-VIA_NOISES = (1e-4, 1e-3, 1e-2, 3e-2, 0.1)
+#: Grid of ``cov_reg_scale``: the grid of DeepProMP's linear part (``AUTO_COV_REGS``), from a little
+#: (every direction of the weight space keeps some variance: via-points off the demos' span stay
+#: reachable) to λ equal to the mean weight variance (few demos, far from spanning the weight space).
+COV_REG_SCALES = AUTO_COV_REGS
+#: Grid of the via-point noise (normalized joint units), DeepProMP's: from a point met all but exactly
+#: to one a tenth of the joint's spread away.
+VIA_NOISES = CV_VIA_NOISES
 
 
 @dataclasses.dataclass(frozen=True)

@@ -17,7 +17,8 @@ from deepprompt_ros.training.config import BASIS_COV_REG_UNITS
 from deepprompt_ros.training.tensors import TensorData, fit_normalization
 
 __all__ = ["pca_basis", "init_basis_pca", "linear_map_condition", "fold_assignment", "cv_via_sets", "CV_CONDITIONINGS",
-           "cv_score", "cv_basis_hyperparameters"]
+           "cv_score", "PROMP_FORM", "AUTO_DECODER_BASIS", "AUTO_LATENT_LINEAR", "AUTO_COV_REGS", "CV_VIA_NOISES",
+           "cv_basis_hyperparameters"]
 
 
 def pca_basis(phi: np.ndarray, y: np.ndarray, latent_dim: int, cov_reg: float = 0.0,
@@ -79,9 +80,11 @@ def init_basis_pca(net: DeepProMPNet, data: TensorData, cov_reg: float = 0.0, ri
     λ = ``cov_reg`` · mean(diag C) (ProMP's regularizer, :meth:`deepprompt_ros.baselines.promp.ProMP.fit`, uses 0.05):
     it gives the k − rank(C) directions beyond the demos' span a small variance instead of none.
     With λ = 0 those columns stay 0. ``joint_std`` (the normalization's, rad): λI in rad instead
-    (``basis_cov_reg_units: raw``, :func:`pca_basis`). Returns the standard deviations of the k columns."""
+    (``basis_cov_reg_units: raw``, :func:`pca_basis`). k is ``latent_linear`` when > 0 (A reads z_lin
+    alone), else ``latent_dim``. Returns the standard deviations of the k columns."""
     phi = net.basis_functions(data.x.double()).numpy()  # (T, n_b)
-    mean, a, scale = pca_basis(phi, data.y.double().numpy(), net.cfg.latent_dim, cov_reg, ridge, joint_std)
+    k = net.cfg.latent_linear or net.cfg.latent_dim  # the columns of A: z_lin's, or all of z's
+    mean, a, scale = pca_basis(phi, data.y.double().numpy(), k, cov_reg, ridge, joint_std)
     net.basis.bias.copy_(torch.as_tensor(mean, dtype=torch.float32))
     net.basis.weight.copy_(torch.as_tensor(a, dtype=torch.float32))
     return scale
@@ -148,59 +151,144 @@ def cv_score(errors: np.ndarray) -> tuple[float, tuple[float, float, float]]:
     return float(np.exp(np.mean(np.log(np.maximum(parts, 1e-300))))), parts
 
 
-def cv_basis_hyperparameters(ds: DemoDataset, n_points: int, n_basis: int, basis_width: float = 1.0,
-                             latent_dims=(64,), cov_regs=(0.05,), noise_stds=(1e-3,), n_via: int = 5,
-                             folds: int = 0, draws: int = 4, seed: int = 0,
-                             cov_reg_units: Sequence[str] = ("normalized",)) -> dict:
-    """Choose the linear part's latent size, ``basis_cov_reg`` λ, the units of λ
-    (``basis_cov_reg_units``, :func:`pca_basis`) and the via-point noise (rad, one value for all
-    joints) of MAP conditioning by K-fold cross-validation on the demonstrations ``ds`` alone.
+#: The grids of :func:`cv_basis_hyperparameters` (``TrainConfig.auto_select``): basis functions per
+#: joint n_b, linear latent sizes k_l (each n_b also tries k_l = n_b·d, the whole weight space, where
+#: the linear part holds a full ProMP), PPCA regularizers λ (relative, :func:`pca_basis`) in both units,
+#: and via-point noises (normalized joint units; ProMP's cross-validation uses the same). λ > 0 and
+#: k_l >= ``reach_via_points`` · d keep a planner's via-points reachable: held-out demonstrations lie
+#: near the span of the others, so the cross-validation alone would accept a linear block that can
+#: move only within that span (λ = 0) or in fewer directions than the via-points constrain.
+AUTO_DECODER_BASIS = (10, 15, 20, 30)
+#: The reference form of the linear part: ProMP's (``ProMPModel``'s 20 RBFs per joint, λ in rad, the
+#: whole weight space as latent) — the default the cross-validation departs from only on evidence.
+PROMP_FORM = (20, "raw")
+AUTO_LATENT_LINEAR = (8, 16, 32, 64)
+AUTO_COV_REGS = (1e-3, 0.01, 0.03, 0.1, 0.3, 1.0)
+CV_VIA_NOISES = (1e-4, 1e-3, 1e-2, 3e-2, 0.1)
+
+
+def cv_basis_hyperparameters(ds: DemoDataset, n_points: int, decoder_bases: Sequence[int] = AUTO_DECODER_BASIS,
+                             basis_width: float = 1.0, latent_linears: Sequence[int] = AUTO_LATENT_LINEAR,
+                             cov_regs: Sequence[float] = AUTO_COV_REGS, via_noises: Sequence[float] = CV_VIA_NOISES,
+                             cov_reg_units: Sequence[str] = BASIS_COV_REG_UNITS, n_via: int = 5, folds: int = 5,
+                             draws: int = 2, seed: int = 0, reach_via_points: int = 5,
+                             reference: tuple[int, str] | None = PROMP_FORM) -> dict:
+    """Choose the linear part Φ(x)(b + A z_lin) of a decoder — basis functions per joint n_b
+    (``decoder_basis``), linear latent size k_l (``latent_linear``), PPCA regularizer λ
+    (``basis_cov_reg``) and its units (``basis_cov_reg_units``), via-point noise (``via_noise``,
+    normalized joint units) — by K-fold cross-validation on the demonstrations ``ds`` alone.
 
     Per fold: the normalization (:func:`fit_normalization`) and the PPCA (:func:`pca_basis`) are fitted
-    to the other demos, and each held-out demo is conditioned on ``draws`` sets of ``n_via`` random
-    via-points (:func:`linear_map_condition`, the closed form of MAP refinement with the standard
-    prior); the score is the mean held-out MSE (rad²) over all 100 phases. ``folds`` 0 = leave-one-out.
-    Deterministic in ``seed``.
+    to the other demos, and each held-out demo is reconstructed from the via-point sets of
+    :func:`cv_via_sets` (start, start + end, ``draws`` sets of ``n_via`` points) by exact Gaussian
+    conditioning of z_lin ~ N(0, I) (the posterior mean, :func:`linear_map_condition`'s closed form,
+    noise ``via_noise`` on every joint in normalized units); a grid point's score is
+    :func:`cv_score` of the held-out whole-trajectory MSEs (rad²). Per n_b, k_l runs over the values
+    of ``latent_linears`` from ``reach_via_points`` · d (the rows of that many full via-points) to below
+    n_b·d, and n_b·d itself; n_b over the values of ``decoder_bases`` up to ``n_points`` / 2.
+    ``folds``: at most one per demo. Deterministic in ``seed``.
 
-    Returns {"latent_dim", "basis_cov_reg", "basis_cov_reg_units", "noise_std", "cv_mse",
-    "table": [[k, λ, s, mse, units], ...]}.
+    ``reference`` (n_b, units): the grid points of that basis with the whole weight space as latent
+    (k_l = n_b·d) and λ in those units — a ProMP (:data:`PROMP_FORM`) — are the default: the best grid
+    point is chosen over the best of them only if its per-demo log error (:func:`cv_score`'s terms, per
+    demo) is lower by more than one standard error of the paired difference (the one-standard-error
+    rule of :func:`deepprompt_ros.training.selection.keep_residual`); small differences on the
+    cross-validation's few demos do not carry to other demos.
+
+    Returns {"decoder_basis", "latent_linear", "basis_cov_reg", "basis_cov_reg_units", "via_noise",
+    "cv_mse", "cv_mse_parts" (per conditioning of :data:`CV_CONDITIONINGS`), "folds", "draws", "n_demos",
+    "table": [[n_b, k_l, λ, units, noise, score, mse start, mse start+end, mse random], ...], and when the
+    reference is in the grid "reference": {"row", "best_row", "log_difference", "standard_error",
+    "best_kept"}}.
     """
     demos = ds.demos
     n = len(demos)
     if n < 3:
         raise ValueError(f"cross-validation needs >= 3 demonstrations, got {n}")
-    folds = n if folds <= 0 else min(int(folds), n)
-    fold_of = fold_assignment(n, folds, seed)
-    x = np.linspace(0.0, 1.0, n_points)
-    phi = phase_basis(x, n_basis, basis_width, ds.phase_type == "rhythmic")
-    y_all = np.stack([d.resampled(n_points) for d in demos])  # (n, T, d) rad
-    sels = [[np.sort(np.random.default_rng([seed, i, r]).choice(n_points, int(n_via), replace=False))
-             for r in range(draws)] for i in range(n)]
     bad = [u for u in cov_reg_units if u not in BASIS_COV_REG_UNITS]
     if bad or not cov_reg_units:
         raise ValueError(f"cov_reg_units must be a non-empty selection of {BASIS_COV_REG_UNITS}, "
                          f"got {tuple(cov_reg_units)}")
-    grid = [(int(k), float(c), float(s), str(u)) for k in latent_dims for c in cov_regs for s in noise_stds
-            for u in dict.fromkeys(cov_reg_units)]
-    err = {g: [] for g in grid}
+    bases = sorted({int(b) for b in decoder_bases if 2 <= int(b) <= n_points // 2})
+    if not bases or not latent_linears or not cov_regs or not via_noises or min(via_noises) <= 0:
+        raise ValueError(f"the grids must be non-empty, decoder_bases in [2, n_points / 2 = {n_points // 2}] and "
+                         f"via_noises > 0; got decoder_bases {tuple(decoder_bases)}, latent_linears "
+                         f"{tuple(latent_linears)}, cov_regs {tuple(cov_regs)}, via_noises {tuple(via_noises)}")
+    folds = max(2, min(int(folds), n))
+    fold_of = fold_assignment(n, folds, seed)
+    x = np.linspace(0.0, 1.0, n_points)
+    y_all = np.stack([d.resampled(n_points) for d in demos])  # (n, T, d) rad
+    d = y_all.shape[2]
+    sets = cv_via_sets(n_points, n, n_via, draws, seed)
+    noise2 = np.asarray(via_noises, dtype=np.float64) ** 2  # (S,)
+    units = tuple(dict.fromkeys(cov_reg_units))
+    ks_of = {nb: sorted({int(k) for k in latent_linears if max(1, reach_via_points * d) <= int(k) < nb * d}
+                        | {nb * d}) for nb in bases}
+    err = {(nb, k, float(c), u): np.zeros((n, len(sets[0]), noise2.size))
+           for nb in bases for k in ks_of[nb] for c in cov_regs for u in units}
     for f in range(folds):
-        tr = np.flatnonzero(fold_of != f)
-        te = np.flatnonzero(fold_of == f)
+        tr, te = np.flatnonzero(fold_of != f), np.flatnonzero(fold_of == f)
         norm = fit_normalization(DemoDataset(tuple(demos[i] for i in tr), ds.source), n_points)
-        yn = (y_all - norm.y_mean) / norm.y_std
         std = np.asarray(norm.y_std, dtype=np.float64)
-        fits = {(k, c, u): pca_basis(phi, yn[tr], k, c, joint_std=std if u == "raw" else None)
-                for (k, c, _, u) in grid}
-        for g in grid:
-            k, c, s, u = g
-            mean, a, _ = fits[(k, c, u)]
-            noise = s / std
-            for i in te:
-                for sel in sels[i]:
-                    pred = linear_map_condition(phi, mean, a, sel, yn[i, sel], noise) * norm.y_std + norm.y_mean
-                    err[g].append(float(((pred - y_all[i]) ** 2).mean()))
-    table = [[k, c, s, float(np.mean(err[(k, c, s, u)])), u] for (k, c, s, u) in grid]
-    best = min(table, key=lambda r: r[3])
-    return {"latent_dim": best[0], "basis_cov_reg": best[1], "basis_cov_reg_units": best[4], "noise_std": best[2],
-            "cv_mse": best[3],
-            "folds": folds, "draws": draws, "n_demos": n, "table": table}
+        yn = (y_all - norm.y_mean) / std
+        for nb in bases:
+            phi = phase_basis(x, nb, basis_width, ds.phase_type == "rhythmic")
+            ks = ks_of[nb]
+            for u in units:
+                for c in cov_regs:
+                    mean, a, _ = pca_basis(phi, yn[tr], ks[-1], float(c), joint_std=std if u == "raw" else None)
+                    for j in range(len(sets[0])):  # the j-th set of every held-out demo (same size): one batch
+                        sel = np.stack([sets[i][j] for i in te])  # (B, V)
+                        for k, e in zip(ks, _conditioned_errors(phi, mean, a, ks, sel, yn[te], std, noise2)):
+                            err[(nb, k, float(c), u)][te, j] = e
+    table, per_demo = [], {}
+    for (nb, k, c, u), e in err.items():
+        for s, v in enumerate(via_noises):
+            score, parts = cv_score(e[:, :, s])
+            table.append([nb, k, c, u, float(v), score, *parts])
+            per_demo[(nb, k, c, u, float(v))] = _log_scores(e[:, :, s])
+    best = min(table, key=lambda r: r[5])
+    out = {"folds": folds, "draws": draws, "n_demos": n, "table": table}
+    ref_rows = [r for r in table if reference is not None and (r[0], r[1], r[3]) == (reference[0], reference[0] * d,
+                                                                                      reference[1])]
+    if ref_rows:  # the best grid point replaces the best ProMP-form one only beyond one standard error
+        ref = min(ref_rows, key=lambda r: r[5])
+        diff = per_demo[tuple(best[:5])] - per_demo[tuple(ref[:5])]
+        se = float(diff.std(ddof=1) / np.sqrt(diff.size))
+        out["reference"] = {"row": ref, "log_difference": float(diff.mean()), "standard_error": se,
+                            "best_row": best, "best_kept": bool(diff.mean() + se < 0)}
+        best = best if diff.mean() + se < 0 else ref
+    return {"decoder_basis": best[0], "latent_linear": best[1], "basis_cov_reg": best[2],
+            "basis_cov_reg_units": best[3], "via_noise": best[4], "cv_mse": best[5], "cv_mse_parts": best[6:], **out}
+
+
+def _log_scores(errors: np.ndarray) -> np.ndarray:
+    """(n_demos,) each held-out demo's log error: the mean over the conditionings of
+    :data:`CV_CONDITIONINGS` of the log of its MSE (the random sets averaged first), the per-demo
+    counterpart of :func:`cv_score`."""
+    e = np.maximum(np.asarray(errors, dtype=np.float64), 1e-300)
+    return (np.log(e[:, 0]) + np.log(e[:, 1]) + np.log(e[:, 2:].mean(1))) / 3.0
+
+
+def _conditioned_errors(phi, mean, a, ks, sel, y_true, std, noise2) -> list[np.ndarray]:
+    """Whole-trajectory MSEs (rad²) of the posterior mean of z_lin ~ N(0, I) given the via-points of B
+    demos, for each latent size of ``ks`` (the first k columns of ``a``) and each noise variance of
+    ``noise2`` (S,): with J z + ε = r, ε ~ N(0, noise² I), z = Jᵀ (J Jᵀ + noise² I)⁻¹ r through the
+    eigendecomposition of J Jᵀ (all noises at once). phi (T, n_b), mean (n_b·d,), a (n_b·d, K),
+    sel (B, V) phase indices, y_true (B, T, d) normalized, std (d,). Returns per k an array (B, S)."""
+    (t, nb), (b, v), d, s = phi.shape, sel.shape, y_true.shape[2], noise2.size
+    wm = mean.reshape(nb, d)
+    ph = phi[sel]  # (B, V, n_b)
+    yv = np.take_along_axis(y_true, sel[:, :, None], 1)  # (B, V, d)
+    res = (yv - ph @ wm).reshape(b, v * d)  # innovations, rows (via, joint)
+    jac_all = (ph @ a.reshape(nb, -1)).reshape(b, v * d, -1)  # (B, V·d, K): row (v, j) = Σ_n φ_n(x_v) a[n·d + j]
+    out = []
+    for k in ks:
+        jac = jac_all[:, :, :k]
+        e, u = np.linalg.eigh(jac @ jac.transpose(0, 2, 1))  # (B, M), (B, M, M)
+        c = (u.transpose(0, 2, 1) @ res[:, :, None])  # Uᵀ r, (B, M, 1)
+        coef = u @ (c / (np.clip(e, 0.0, None)[:, :, None] + noise2))  # (B, M, S)
+        w = (a[:, :k] @ (jac.transpose(0, 2, 1) @ coef)).reshape(b, nb, d * s)  # (B, n_b, d·S) weight offsets
+        pred = (phi @ w).reshape(b, t, d, s) + (phi @ wm)[None, :, :, None]
+        out.append((((pred - y_true[..., None]) * std[:, None]) ** 2).mean((1, 2)))
+    return out

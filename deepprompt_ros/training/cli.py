@@ -5,7 +5,12 @@ Usage::
     train --data DATASET_DIR --config config/train_gen3_lite_reach.yaml --out models/NAME.safetensors
     python -m deepprompt_ros.training.cli --builtin bimodal_sine --config config/train_bimodal_sine.yaml --out ...
 
-The training YAML files of the shipped models are ``config/train_*.yaml``. Exit status 2 with a
+Without a configuration every default applies, ``auto_select`` among them: the decoder's linear part
+and its via-point noise are chosen by cross-validation on the training demonstrations and the MLP
+residual is kept or dropped on the validation ones (:mod:`deepprompt_ros.training.selection`); the
+choices are printed and stored in the checkpoint. The last line printed is a JSON summary (``out``,
+``best_val_mse_rad2``, ``selected``). The training YAML files of the shipped models are
+``config/train_*.yaml``. Exit status 2 with a
 message (``error: ...``) naming every refused key or value when the configuration or the data
 are refused.
 """
@@ -48,10 +53,14 @@ def main(argv=None) -> int:
         return 2
     print(f"training on {len(ds)} demonstrations from {ds.source}: joints {list(ds.joint_names)}, "
           f"phase {ds.phase_type}, contexts {ds.context_dims or 'none'}, images {ds.image_shape or 'none'}")
-    _, _, hist = train(ds, cfg, out_path=args.out)
+    info = {}
+    _, _, hist = train(ds, cfg, out_path=args.out, info=info)
     best = min(h["val"]["mean"] for h in hist)
     print(f"best validation MSE {best:.3e} rad²; checkpoint written to {pathlib.Path(args.out).resolve()}")
-    print(json.dumps({"out": str(pathlib.Path(args.out).resolve()), "best_val_mse_rad2": best}))
+    trained = info["train_config"]
+    chosen = {k: trained[k] for k in ("decoder_basis", "latent_linear", "latent_dim", "basis_cov_reg",
+                                      "basis_cov_reg_units", "via_noise", "residual_scale")} if cfg.auto_select else {}
+    print(json.dumps({"out": str(pathlib.Path(args.out).resolve()), "best_val_mse_rad2": best, "selected": chosen}))
     return 0
 
 

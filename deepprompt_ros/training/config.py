@@ -13,7 +13,7 @@ import pathlib
 from typing import Mapping
 
 from deepprompt_ros.common.params import ConfigError, from_mapping, param, param_from, validate
-from deepprompt_ros.model.network import ModelConfig, decoder_basis_error
+from deepprompt_ros.model.network import ModelConfig, decoder_basis_error, latent_linear_errors
 
 __all__ = ["TrainConfig", "OBJECTIVES", "CONSISTENCY_ENCODER", "BASIS_INITS", "BASIS_COV_REG_UNITS"]
 
@@ -28,8 +28,9 @@ class TrainConfig:
     """Training hyper-parameters (YAML keys of the same names; unknown keys are refused).
 
     The objectives (``objective``) and the sub-sampling of inputs are described in
-    :mod:`deepprompt_ros.training.objectives`; the linear-basis initialization in
-    :mod:`deepprompt_ros.training.basis`. "normalized" units are joint positions and contexts
+    :mod:`deepprompt_ros.training.objectives`; the linear-basis initialization and its
+    cross-validation in :mod:`deepprompt_ros.training.basis`, the model selection of ``auto_select``
+    in :mod:`deepprompt_ros.training.selection`. "normalized" units are joint positions and contexts
     standardized with the training set's statistics.
     """
 
@@ -43,6 +44,23 @@ class TrainConfig:
     decoder_basis: int = param_from(ModelConfig, "decoder_basis")
     basis_width: float = param_from(ModelConfig, "basis_width")
     residual_scale: float = param_from(ModelConfig, "residual_scale")
+    latent_linear: int = param_from(ModelConfig, "latent_linear")
+    via_noise: float = param_from(ModelConfig, "via_noise")
+    # -- model selection on the training demonstrations
+    auto_select: bool = param(True, "choose the decoder from the training demos (never held-out ones): "
+                                    "decoder_basis, latent_linear, basis_cov_reg, basis_cov_reg_units and "
+                                    "via_noise by cross-validation of the linear part, latent_dim = latent_linear "
+                                    "+ latent_nonlinear, the linear part initialized as their PPCA and kept "
+                                    "fixed (basis_init pca, basis_lr_scale 0), then the MLP residual kept "
+                                    "(residual_scale) or dropped (0) on the validation demos; the file's values "
+                                    "of those keys are not used. false: every key as given")
+    latent_nonlinear: int = param(8, "with auto_select: k_n, the latent dimensions only the MLP reads (the "
+                                     "nonlinear block that can hold several modes)", min=1)
+    cv_folds: int = param(5, "with auto_select: folds of the cross-validation (at most one per training "
+                             "demonstration)", min=2)
+    residual_folds: int = param(0, "with auto_select: 0 = judge the MLP residual on the validation demos; K >= 2 "
+                                   "= on the held-out demos of a K-fold cross-validation of the whole training on "
+                                   "the training demos (K more trainings)", min=0)
     # -- linear part of a residual decoder
     basis_init: str = param("random", "initial linear part: 'random' (small Gaussian weights) or 'pca' (the PPCA "
                                       "of the training demonstrations)", choices=BASIS_INITS)
@@ -66,10 +84,13 @@ class TrainConfig:
     n_points: int = param(100, "phases at which every demonstration is resampled for training", min=2)
     # -- which inputs each update gives (sub-sampling)
     max_via_points: int = param(10, "most via-points in a training subset (<= n_points)", min=0)
-    p_via_points: float = param(0.7, "probability that a trajectory's subset has via-points", min=0.0, max=1.0)
-    p_context: float = param(0.5, "probability that each context modality (and the images) is given", min=0.0,
-                             max=1.0)
-    p_empty: float = param(0.1, "probability that a trajectory is given nothing (the prior)", min=0.0, max=1.0)
+    p_via_points: float = param(0.7, "probability of drawing via-points for a trajectory not given nothing "
+                                     "(draws that give nothing are repeated, so the share with via-points is "
+                                     "higher)", min=0.0, max=1.0)
+    p_context: float = param(0.5, "probability of drawing each context modality (and the images) for a "
+                                  "trajectory not given nothing (repeated like p_via_points)", min=0.0, max=1.0)
+    p_empty: float = param(0.1, "share of the trajectories given nothing (the prior); every other one is given "
+                                "at least one input", min=0.0, max=1.0)
     p_low_info: float = param(0.0, "fraction of the via-point subsets drawn only from the phases where the "
                                    "batch's demonstrations agree most (points that cannot tell them apart)",
                               min=0.0, max=1.0)
@@ -98,10 +119,17 @@ class TrainConfig:
 
     def __post_init__(self):
         # the type and range or choices of every field, then the rules a field's range cannot state
+        # latent_linear's rule on decoder_basis × n_joints waits for the data (the model's config checks it)
         validate(self, rules=lambda c: [
             decoder_basis_error(c.decoder_basis),
+            *latent_linear_errors(c.latent_linear, c.latent_dim, c.decoder_basis, n_joints=c.latent_linear),
+            "" if c.residual_folds != 1 else
+            "residual_folds = 1: expected 0 (the validation demos) or >= 2 folds",
             "" if c.max_via_points <= c.n_points else
-            f"max_via_points = {c.max_via_points!r}: expected at most n_points = {c.n_points}"])
+            f"max_via_points = {c.max_via_points!r}: expected at most n_points = {c.n_points}",
+            "" if c.p_empty == 1.0 or c.p_via_points > 0 or c.p_context > 0 else
+            f"p_via_points = 0 and p_context = 0 give every trajectory nothing: expected p_empty = 1 "
+            f"(got {c.p_empty!r}) or a positive p_via_points or p_context"])
 
     @classmethod
     def from_yaml(cls, path) -> "TrainConfig":

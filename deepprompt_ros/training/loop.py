@@ -1,7 +1,8 @@
-"""Training a DeepProMP (paper Sec. III-B): read :func:`train` top to bottom — batch → loss →
-backward → eval → checkpoint. The loss and the validation are in
-:mod:`deepprompt_ros.training.objectives`, the configuration in
-:mod:`deepprompt_ros.training.config`; the command line is :mod:`deepprompt_ros.training.cli`.
+"""Training a DeepProMP (paper Sec. III-B): read :func:`train` top to bottom — model selection →
+batch → loss → backward → eval → residual kept or dropped → checkpoint. The loss and the validation
+are in :mod:`deepprompt_ros.training.objectives`, the configuration in
+:mod:`deepprompt_ros.training.config`, the model selection (``auto_select``) in
+:mod:`deepprompt_ros.training.selection`; the command line is :mod:`deepprompt_ros.training.cli`.
 """
 from __future__ import annotations
 
@@ -20,13 +21,23 @@ from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
 from deepprompt_ros.training.basis import init_basis_pca
 from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.objectives import loss_fn, validation_mse
+from deepprompt_ros.training.selection import judge_residual, select_linear_part
 from deepprompt_ros.training.tensors import fit_normalization, to_tensors
 
 __all__ = ["train"]
 
 
-def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: DemoDataset | None = None):
+def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: DemoDataset | None = None,
+          info: dict | None = None):
     """Train on ``ds`` (a validation split is held out unless ``val_ds`` is given).
+
+    With ``cfg.auto_select`` the linear part is chosen on the training split before training
+    (:func:`~deepprompt_ros.training.selection.select_linear_part`) and the MLP residual kept or
+    dropped on the validation split after it (:func:`~deepprompt_ros.training.selection.judge_residual`);
+    every choice is logged in one line and recorded in the checkpoint's metadata (``selection``,
+    and ``train_config`` holds the configuration actually trained).
+
+    ``info``, when given, receives the checkpoint's metadata entries ``train_config`` and ``selection``.
 
     Returns
     -------
@@ -39,6 +50,9 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
         train_ds, val_ds = ds.split(n_val, seed=cfg.seed)
     else:
         train_ds = ds
+    selection = {}
+    if cfg.auto_select:
+        cfg, selection["linear_part"] = select_linear_part(train_ds, cfg, len(ds.joint_names))
     norm = fit_normalization(train_ds, cfg.n_points)
     data = to_tensors(train_ds, norm, cfg.n_points)
     val = to_tensors(val_ds, norm, cfg.n_points)
@@ -46,7 +60,8 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
                        hidden=cfg.hidden, context_dims=tuple(ds.context_dims.items()), image_shape=ds.image_shape,
                        sigma_y=cfg.sigma_y, var_floor=cfg.var_floor, phase_harmonics=cfg.phase_harmonics,
                        decoder_basis=cfg.decoder_basis, basis_width=cfg.basis_width,
-                       residual_scale=cfg.residual_scale, variance_head=cfg.variance_head)
+                       residual_scale=cfg.residual_scale, variance_head=cfg.variance_head,
+                       latent_linear=cfg.latent_linear, via_noise=cfg.via_noise)
     net = DeepProMPNet(mcfg)
     if cfg.decoder_basis and cfg.basis_init == "pca":
         init_basis_pca(net, data, cfg.basis_cov_reg,
@@ -85,9 +100,20 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
                 f"val_mse {v['mean']:.3e} rad²  {rec['samples_per_s']:.0f} traj/s{mark}")
     net.load_state_dict(best_state)
     net.eval()
+    if cfg.auto_select:
+        def refit(fold_ds):  # the residual's cross-validation trains exactly as here, the linear part as chosen
+            fold_net, fold_norm, _ = train(fold_ds, dataclasses.replace(cfg, auto_select=False), log=lambda s: None)
+            return fold_net, fold_norm
+
+        net, selection["residual"] = judge_residual(net, norm, ds.joint_names, val_ds, cfg, train_ds, refit)
+        cfg = dataclasses.replace(cfg, residual_scale=net.cfg.residual_scale)
+        log(selection_line(selection))
+    if info is not None:
+        info.update(train_config=dataclasses.asdict(cfg), selection=selection)
     if out_path is not None:
         meta = {
             "train_config": dataclasses.asdict(cfg),
+            "selection": selection,
             "provenance": {"dataset": ds.source, "n_train": len(train_ds), "n_val": len(val_ds),
                            "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                            "deepprompt_ros": __version__, "torch": torch.__version__},
@@ -95,3 +121,16 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
         }
         save_checkpoint(out_path, net, norm, ds.joint_names, meta)
     return net, norm, history
+
+
+def selection_line(selection: dict) -> str:
+    """The one log line of ``auto_select``'s choices (``selection`` as :func:`train` records it)."""
+    lin, res = selection["linear_part"], selection["residual"]
+    cv = lin.get("cross_validation")
+    how = f"CV MSE {cv['cv_mse']:.3e} rad², " if cv else ""
+    r = (f"residual {'kept' if res['kept'] else 'dropped'} (relative difference "
+         f"{res['relative_difference']:+.3f} ± {res['standard_error']:.3f} on the {res['n_val']} {res['judged_on']})"
+         if "relative_difference" in res else f"residual: {res['reason']}")
+    return (f"selected on the training demos: decoder_basis {lin['decoder_basis']}, latent_linear "
+            f"{lin['latent_linear']} (latent_dim {lin['latent_dim']}), basis_cov_reg {lin['basis_cov_reg']:g} "
+            f"({lin['basis_cov_reg_units']}), via_noise {lin['via_noise']:g} ({how}{lin['method']}); {r}")

@@ -65,9 +65,14 @@ def encode_all(net: DeepProMPNet, data: TensorData, idx: torch.Tensor):
 def sample_subset_weights(cfg: TrainConfig, data: TensorData, idx: torch.Tensor, kinds, gen: torch.Generator):
     """Which inputs each trajectory of the batch is given this update (1 = given, 0 = withheld).
 
-    Via-points: with probability p_via_points, a random count in [1, max_via_points] (skewed towards
-    small counts) of randomly placed points; each context modality / the images: with probability p_context;
-    with probability p_empty nothing at all (the prior).
+    With probability p_empty a trajectory is given nothing at all (the prior). Every other one is
+    given at least one input: each kind — the via-points with probability p_via_points, each
+    context modality and the images with p_context, a kind counting only where the demonstration
+    has it — is drawn independently, and the draw is repeated until something is given (the
+    independent draws conditioned on a non-empty subset; a demonstration with no kind it can be
+    given stays empty). The share of prior-only trajectories is then p_empty whatever the number of
+    modalities. Via-points given: a random count in [1, max_via_points] (skewed towards small
+    counts) of randomly placed points.
 
     Low-information subsets (``p_low_info``): that fraction of the via-point subsets is drawn only
     from the phases where the demonstrations of the batch agree most (the ``low_info_fraction`` of
@@ -82,12 +87,27 @@ def sample_subset_weights(cfg: TrainConfig, data: TensorData, idx: torch.Tensor,
     w_sub, w_all : (B, N_total)   subset weights and all-elements weights (padding masked).
     """
     b, t = idx.shape[0], data.y.shape[1]
-    parts_sub, parts_all = [], []
-    empty = torch.rand(b, generator=gen) < cfg.p_empty
+    masks, avail, probs = [], [], []  # per kind: element mask (B, n), kind available (B,), probability
     for kind, sl in kinds:
-        n = sl.stop - sl.start
         if kind == "via":
-            use = (torch.rand(b, generator=gen) < cfg.p_via_points) & ~empty
+            mask = torch.ones(b, sl.stop - sl.start)
+        else:
+            mask = data.image_mask[idx].amax(1, keepdim=True) if kind == "image" else data.ctx_mask[kind][idx]
+        masks.append(mask)
+        avail.append(mask.amax(1) > 0)
+        probs.append(cfg.p_via_points if kind == "via" else cfg.p_context)
+    avail_t, probs_t = torch.stack(avail, 1), torch.tensor(probs)  # (B, K), (K,)
+    empty = torch.rand(b, generator=gen) < cfg.p_empty
+    given = torch.zeros(b, len(kinds), dtype=torch.bool)
+    todo = ~empty & (avail_t & (probs_t > 0)).any(1)
+    while todo.any():  # rejection sampling: a draw that gives nothing is drawn again
+        draw = (torch.rand(b, len(kinds), generator=gen) < probs_t) & avail_t
+        given = torch.where(todo.unsqueeze(1), draw, given)
+        todo = todo & ~given.any(1)
+    parts_sub, parts_all = [], []
+    for k, (kind, sl) in enumerate(kinds):
+        use = given[:, k]
+        if kind == "via":
             # count in [1, max_via_points], skewed towards few points (count = 1 + ⌊u² max⌋): small
             # sets are where a primitive must stay uncertain, and they are the rare case otherwise
             u = torch.rand(b, generator=gen)
@@ -104,14 +124,10 @@ def sample_subset_weights(cfg: TrainConfig, data: TensorData, idx: torch.Tensor,
                 low_count = 1 + (torch.rand(b, generator=gen) * min(cfg.max_via_points, n_low)).long()
                 count = torch.where(low_rows, low_count.clamp_max(n_low), count)
             rank = key.argsort(1).argsort(1)  # random rank of each point
-            sub = (rank < count.unsqueeze(1)) & use.unsqueeze(1)
-            parts_sub.append(sub.float())
-            parts_all.append(torch.ones(b, n))
+            parts_sub.append(((rank < count.unsqueeze(1)) & use.unsqueeze(1)).float())
         else:
-            mask = data.image_mask[idx].amax(1, keepdim=True) if kind == "image" else data.ctx_mask[kind][idx]
-            use = (torch.rand(b, generator=gen) < cfg.p_context) & ~empty
-            parts_sub.append(mask * use.float().unsqueeze(1))
-            parts_all.append(mask)
+            parts_sub.append(masks[k] * use.float().unsqueeze(1))
+        parts_all.append(masks[k])
     return torch.cat(parts_sub, 1), torch.cat(parts_all, 1)
 
 

@@ -1,0 +1,165 @@
+"""The model selection of ``TrainConfig.auto_select``, made from the training demonstrations alone:
+
+1. :func:`select_linear_part` — the linear part Φ(x)(b + A z_lin) of the decoder (n_b, k_l, the PPCA
+   regularizer and its units, the via-point noise) by cross-validation on the demos the network is
+   trained on (:func:`deepprompt_ros.training.basis.cv_basis_hyperparameters`);
+2. :func:`judge_residual` — after training, the MLP residual kept or dropped (``residual_scale`` 0)
+   by comparing the model with and without it on the validation demos of the training split (or,
+   with ``residual_folds``, on the held-out demos of a cross-validation of the whole training),
+   through the primitive's own conditioning path
+   (:meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.condition`), with the one-standard-error rule
+   (:func:`keep_residual`).
+
+Held-out (test) demonstrations are never passed to either.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable
+
+import numpy as np
+
+from deepprompt_ros.data.demo_dataset import DemoDataset
+from deepprompt_ros.model.checkpoint import Normalization
+from deepprompt_ros.model.network import DeepProMPNet
+from deepprompt_ros.primitive.deep_promp import DeepProMP
+from deepprompt_ros.training.basis import cv_basis_hyperparameters, fold_assignment
+from deepprompt_ros.training.config import TrainConfig
+
+__all__ = ["select_linear_part", "judge_residual", "keep_residual", "without_residual", "FALLBACK_LINEAR_PART",
+           "RESIDUAL_VIA_POINTS", "RESIDUAL_DRAWS"]
+
+#: The linear part used when the training split has fewer than 3 demonstrations (nothing to
+#: cross-validate): 20 basis functions per joint (fewer on a short grid), the whole weight space as
+#: linear latent (a ProMP) and ProMP's default regularizer in rad.
+FALLBACK_LINEAR_PART = {"decoder_basis": 20, "basis_cov_reg": 0.05, "basis_cov_reg_units": "raw", "via_noise": 1e-3}
+#: The residual's validation: ``RESIDUAL_DRAWS`` sets of ``RESIDUAL_VIA_POINTS`` random via-points per demo.
+RESIDUAL_VIA_POINTS = 5
+RESIDUAL_DRAWS = 4
+_CHOSEN = ("decoder_basis", "latent_linear", "basis_cov_reg", "basis_cov_reg_units", "via_noise")
+
+
+def select_linear_part(train_ds: DemoDataset, cfg: TrainConfig, n_joints: int) -> tuple[TrainConfig, dict]:
+    """The configuration ``cfg`` with the linear part chosen on ``train_ds`` (``cfg.cv_folds``-fold
+    cross-validation, seed ``cfg.seed``; :data:`FALLBACK_LINEAR_PART` below 3 demos), ``latent_dim`` =
+    ``latent_linear`` + ``latent_nonlinear``, the linear part initialized as the PPCA and kept fixed
+    (``basis_init`` pca, ``basis_lr_scale`` 0). Returns (that configuration, the record of the choice:
+    the values, and the cross-validation's result or the reason for the fallback)."""
+    if len(train_ds) >= 3:
+        cv = cv_basis_hyperparameters(train_ds, cfg.n_points, basis_width=cfg.basis_width, folds=cfg.cv_folds,
+                                      seed=cfg.seed)
+        choice = {k: cv[k] for k in _CHOSEN}
+        record = {"method": f"{cv['folds']}-fold cross-validation on the {cv['n_demos']} training demonstrations",
+                  "cross_validation": cv}
+    else:
+        nb = min(FALLBACK_LINEAR_PART["decoder_basis"], max(2, cfg.n_points // 2))
+        choice = {**FALLBACK_LINEAR_PART, "decoder_basis": nb, "latent_linear": nb * n_joints}
+        record = {"method": f"fallback: {len(train_ds)} training demonstrations are too few to cross-validate"}
+    out = dataclasses.replace(cfg, **choice, latent_dim=choice["latent_linear"] + cfg.latent_nonlinear,
+                              basis_init="pca", basis_lr_scale=0.0)
+    return out, {**record, **choice, "latent_dim": out.latent_dim}
+
+
+def judge_residual(net: DeepProMPNet, norm: Normalization, joint_names, val_ds: DemoDataset, cfg: TrainConfig,
+                   train_ds: DemoDataset | None = None,
+                   refit: Callable[[DemoDataset], tuple[DeepProMPNet, Normalization]] | None = None
+                   ) -> tuple[DeepProMPNet, dict]:
+    """Keep or drop the trained MLP residual of ``net`` by conditioned reconstructions (whole
+    trajectory, ``cfg.n_points`` phases, rad²) with and without it (``residual_scale`` 0), of
+
+    - the validation demos ``val_ds`` by ``net`` (``cfg.residual_folds`` 0), or
+    - the held-out demos of a ``cfg.residual_folds``-fold cross-validation on ``train_ds``, by the
+      networks ``refit`` trains on the other folds exactly as ``net`` was (its linear part as chosen);
+      the demos that judge the residual are then never those that chose its checkpoint.
+
+    Conditionings: the start point alone, ``RESIDUAL_DRAWS`` sets of ``RESIDUAL_VIA_POINTS`` random
+    via-points (seeded, averaged into one) and — when the data has them — the start point with every
+    context and the images. Each conditioning's errors are divided by its mean error without the
+    residual (so each weighs the same), and :func:`keep_residual` decides on the per-demo mean of
+    those relative differences.
+
+    Returns (the network to keep: ``net``, or a copy with ``residual_scale`` 0; the record of the
+    decision: kept, the mean relative difference and its standard error, the MSEs per conditioning)."""
+    if not net.cfg.decoder_basis or net.cfg.residual_scale == 0:
+        return net, {"kept": False, "reason": "no residual to judge (residual_scale 0 or no linear basis)"}
+    folds = cfg.residual_folds
+    extras = bool(val_ds.context_dims) or val_ds.image_shape is not None
+    if folds >= 2:
+        if train_ds is None or refit is None:
+            raise ValueError("residual_folds >= 2 needs the training demos and a refit function")
+        if not 2 <= folds <= len(train_ds) // 2:
+            raise ValueError(f"residual_folds = {folds}: expected 2 <= residual_folds <= {len(train_ds) // 2} for "
+                             f"{len(train_ds)} training demonstrations (or 0: judge on the validation demos)")
+        fold_of = fold_assignment(len(train_ds), folds, cfg.seed)
+        parts = []
+        for k in range(folds):
+            held = DemoDataset(tuple(d for d, f in zip(train_ds.demos, fold_of) if f == k), f"{train_ds.source}:held{k}")
+            fit_on = DemoDataset(tuple(d for d, f in zip(train_ds.demos, fold_of) if f != k), f"{train_ds.source}:fold{k}")
+            parts.append(_residual_errors(*refit(fit_on), joint_names, held, cfg, extras))
+        with_r, without = (np.concatenate([p[m] for p in parts], 1) for m in (0, 1))
+        judged = f"held-out demos of a {folds}-fold cross-validation on the training demos"
+    else:
+        with_r, without = _residual_errors(net, norm, joint_names, val_ds, cfg, extras)
+        judged = "validation demos"
+    scale = np.maximum(without.mean(1, keepdims=True), 1e-300)
+    keep, diff, se = keep_residual(with_r / scale, without / scale)
+    labels = ["start", f"{RESIDUAL_VIA_POINTS} via-points"] + (["start + contexts"] if extras else [])
+    record = {"kept": keep, "relative_difference": diff, "standard_error": se, "n_val": int(with_r.shape[1]),
+              "judged_on": judged, "mse_with": dict(zip(labels, with_r.mean(1).tolist())),
+              "mse_without": dict(zip(labels, without.mean(1).tolist()))}
+    if keep:
+        return net, record
+    return without_residual(net), record
+
+
+def _residual_errors(net: DeepProMPNet, norm: Normalization, joint_names, demos: DemoDataset, cfg: TrainConfig,
+                     extras: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(with, without): (conditionings, n_demos) MSEs of ``demos`` reconstructed by ``net`` with and
+    without its residual, the conditionings of :func:`judge_residual`."""
+    on = DeepProMP(net, norm, joint_names)
+    off = on.with_residual_scale(0.0)
+    x = np.linspace(0.0, 1.0, cfg.n_points)
+    err = np.zeros((2, 1 + RESIDUAL_DRAWS + int(extras), len(demos)))
+    n_via = min(RESIDUAL_VIA_POINTS, cfg.n_points)
+    for i, demo in enumerate(demos.demos):
+        y = demo.resampled(cfg.n_points)
+        sets = [np.array([0])] + [np.sort(np.random.default_rng([cfg.seed, 7, i, r]).choice(cfg.n_points, n_via,
+                                                                                           replace=False))
+                                  for r in range(RESIDUAL_DRAWS)]
+        for m, prim in enumerate((on, off)):
+            for c, sel in enumerate(sets):
+                lat = prim.condition(x[sel], y[sel])
+                err[m, c, i] = float(((prim.mean_trajectory(lat, x) - y) ** 2).mean())
+            if extras:
+                lat = prim.condition(x[:1], y[:1], contexts=demo.contexts or None, images=demo.images)
+                err[m, -1, i] = float(((prim.mean_trajectory(lat, x) - y) ** 2).mean())
+    # the random via-point sets count as one conditioning: their mean
+    per = lambda e: np.concatenate([e[:1], e[1:1 + RESIDUAL_DRAWS].mean(0, keepdims=True),  # noqa: E731
+                                    e[1 + RESIDUAL_DRAWS:]])
+    return per(err[0]), per(err[1])
+
+
+def without_residual(net: DeepProMPNet) -> DeepProMPNet:
+    """A copy of ``net`` whose residual scale is 0 (its decoder is the linear part alone)."""
+    out = DeepProMPNet(dataclasses.replace(net.cfg, residual_scale=0.0))
+    out.load_state_dict(net.state_dict())
+    return out.eval()
+
+
+def keep_residual(with_residual: np.ndarray, without: np.ndarray) -> tuple[bool, float, float]:
+    """The one-standard-error rule (Hastie, Tibshirani & Friedman, *The Elements of Statistical
+    Learning*, 2nd ed., §7.10): keep the MLP residual only if its validation error is lower than the
+    simpler model's (residual off) by more than one standard error of the difference.
+
+    ``with_residual``, ``without`` : (sets, n_demos) validation errors of the same conditionings. The
+    standard error is over demos (their mean over the sets; the sets of one demo are not independent),
+    over the sets when there is a single demo. Returns (keep, mean difference, its standard error)."""
+    a = np.atleast_2d(np.asarray(with_residual, dtype=np.float64))
+    b = np.atleast_2d(np.asarray(without, dtype=np.float64))
+    if a.shape != b.shape or a.size == 0:
+        raise ValueError(f"keep_residual needs two equal, non-empty (sets, demos) arrays, got {a.shape} and {b.shape}")
+    diff = (a - b).mean(0) if a.shape[1] >= 2 else (a - b)[:, 0]
+    if diff.size < 2:
+        return False, float(diff.mean()), float("inf")
+    se = float(diff.std(ddof=1) / np.sqrt(diff.size))
+    return bool(diff.mean() + se < 0.0), float(diff.mean()), se
