@@ -146,7 +146,7 @@ def model(dataset, tmp):
     path = tmp / "model.safetensors"
     t0 = time.perf_counter()
     train(dataset, TrainConfig(steps=300, batch_size=16, latent_dim=8, hidden=32, n_points=50,
-                                     max_via_points=5, val_every=300, threads=1, seed=0),
+                                     max_via_points=5, val_every=300, threads=1, seed=0, auto_select=False),
           out_path=path, log=lambda m: None)
     print(f"trained on {len(dataset)} demonstrations in {time.perf_counter() - t0:.1f} s")
     assert path.is_file()
