@@ -260,7 +260,7 @@ MALFORMED = [
     ("negative weight", dict(via_points=[via(0.5, SPEC.home, (), True, -1.0)]), Code.INVALID_VIA_POINT,
      "weight -1.0 is invalid"),
     ("too many via-points", dict(via_points=[via(0.5, SPEC.home)] * 1001), Code.INVALID_REQUEST,
-     "1001 via-points; the server accepts at most 1000"),
+     "1001 via-points; the server accepts at most 1000 (parameter max_via_points)"),
     ("absurd preview", dict(preview_points=10_000_000), Code.INVALID_REQUEST, "preview_points = 10000000"),
     ("one preview point", dict(preview_points=1), Code.INVALID_REQUEST, "expected 0 (server default 100) or 2..10000"),
     ("unknown context", dict(contexts=[ContextIn("color", np.ones(3))]), Code.INVALID_CONTEXT,
@@ -360,8 +360,9 @@ def test_sample_shapes_seed_and_bounds(core):
     assert code_of(core.sample, SampleRequest(handle="nope"))[0] == Code.UNKNOWN_HANDLE
     got, msg = code_of(core.sample, SampleRequest(handle=h, n_samples=10**6))
     assert got == Code.INVALID_REQUEST and "max_samples" in msg
-    got, msg = code_of(core.sample, SampleRequest(handle=h, n_samples=1000, n_points=10000))
-    assert got == Code.INVALID_REQUEST and "max_sample_values" in msg
+    got, msg = code_of(core.sample, SampleRequest(handle=h, n_samples=1000, n_points=21))
+    assert got == Code.INVALID_REQUEST and "max_sample_points" in msg and "1000 x 21 = 21000" in msg
+    assert core.sample(SampleRequest(handle=h, n_samples=1000, n_points=20)).samples.shape == (1000, 20, 6)
 
 
 def test_list_describes_joints_limits_contexts_and_images(core):

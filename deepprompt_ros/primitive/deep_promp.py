@@ -402,7 +402,7 @@ class DeepProMP:
                tol: float = 1e-6, n_samples: int = 16, seed: int = 0, sigma_target: np.ndarray | None = None,
                sigma_iterations: int = 5, max_restarts: int = 5,
                smoothing_schedule: Sequence[float] = (3.0, 10.0, 30.0, 100.0),
-               latent_bound: float = 5.0) -> RefinementResult:
+               latent_bound: float = 5.0, time_budget: float | None = None) -> RefinementResult:
         """Deployment-time refinement of (μ̃, σ̃) that meets the via-points to ``tol`` (paper Eq. 5
         and appendix): :func:`deepprompt_ros.primitive.refinement.refine_exact`, where the other
         parameters are described. A split latent whose mean meets them already comes back as it is
@@ -415,16 +415,19 @@ class DeepProMP:
         via_x : array, shape (n,)
         via_y : array, shape (n, d)
         joint_mask : array of bool, shape (n, d) or (d,), optional; joints to meet (default all)
+        time_budget : float, optional
+            Wall time (s) after which no further iteration starts (None: no limit).
 
         Returns
         -------
         RefinementResult; ``reachable=False`` with the best fit when the via-points cannot all be
-        met (never a silent miss).
+        met (never a silent miss), ``out_of_time=True`` as well when the time budget ended it.
         """
         return refine_exact(self, latent, via_x, via_y, joint_mask, max_iterations=max_iterations, tol=tol,
                             n_samples=n_samples, seed=seed, sigma_target=sigma_target,
                             sigma_iterations=sigma_iterations, max_restarts=max_restarts,
-                            smoothing_schedule=smoothing_schedule, latent_bound=latent_bound)
+                            smoothing_schedule=smoothing_schedule, latent_bound=latent_bound,
+                            time_budget=time_budget)
 
     def refine_map(self, latent: LatentGaussian, via_x, via_y, joint_mask=None, prior: str = "posterior",
                    noise_std=None, max_iterations: int = 50, tol: float = 1e-6,

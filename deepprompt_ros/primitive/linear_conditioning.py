@@ -23,6 +23,8 @@ Cholesky factor, whose condition number is the square root of the precision's).
 from __future__ import annotations
 
 import dataclasses
+import math
+import time
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -215,7 +217,8 @@ class SplitRefinement:
 
 
 def refine_split(net: "NumpyNet", latent: LatentGaussian, x: np.ndarray, y: np.ndarray, mask: np.ndarray,
-                 tol: float, max_iterations: int, factor: float = 10.0, min_noise: float = 1e-12) -> SplitRefinement:
+                 tol: float, max_iterations: int, factor: float = 10.0, min_noise: float = 1e-12,
+                 deadline: float = math.inf) -> SplitRefinement:
     """Meet via-points with a split latent's mean by exact conditioning of z_lin alone.
 
     0 iterations when the mean meets them (|error| <= ``tol`` on every constrained joint) already.
@@ -223,8 +226,9 @@ def refine_split(net: "NumpyNet", latent: LatentGaussian, x: np.ndarray, y: np.n
     from the recorded prior q_c and with the latent's z_nl candidates, with the noise divided by
     ``factor`` per iteration (the error of a via-point the linear block can reach falls as the
     noise squared) until the mean meets them, the error no longer halves (more constraints than the
-    block can meet), the noise falls below ``min_noise``, the factor cannot be computed, or
-    ``max_iterations``. The best latent found is returned.
+    block can meet), the noise falls below ``min_noise``, the factor cannot be computed,
+    ``max_iterations``, or ``deadline`` (a :func:`time.perf_counter` time) has passed before an
+    iteration. The best latent found is returned.
 
     Parameters
     ----------
@@ -243,6 +247,9 @@ def refine_split(net: "NumpyNet", latent: LatentGaussian, x: np.ndarray, y: np.n
     while best_err > tol:
         if it >= max_iterations:
             reason = "budget"
+            break
+        if time.perf_counter() >= deadline:
+            reason = "time budget"
             break
         noise /= factor
         if noise < min_noise:

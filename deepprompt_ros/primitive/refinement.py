@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
@@ -49,6 +50,9 @@ class RefinementResult:
         budget) with a residual above tol: the via-points cannot all be met by this primitive; the
         best fit found is returned, never a silent miss.
     reason : str
+    out_of_time : bool
+        True when the time budget (``time_budget`` of :func:`refine_exact`) ended the refinement
+        before it met tol (``reachable`` is then False): a larger budget may meet the via-points.
     error_history : array, shape (iterations + 1,)
         Max via-point error of the exact decoder at the best μ̃ found so far: before the first
         iteration, then after each one (all stages: LM, continuation, restarts). Non-increasing;
@@ -63,6 +67,7 @@ class RefinementResult:
     reachable: bool
     reason: str
     error_history: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    out_of_time: bool = False
 
 
 def refinement_inputs(prim: "DeepProMP", via_x, via_y, joint_mask, max_iterations: int, tol: float):
@@ -171,7 +176,7 @@ def refine_map(prim: "DeepProMP", latent: LatentGaussian, via_x, via_y, joint_ma
 
 # ---------------------------------------------------------------------------------------- exact
 def _split_result(prim: "DeepProMP", split: SplitRefinement, x, y, mask, n_samples: int,
-                  seed: int) -> RefinementResult:
+                  seed: int, out_of_time: bool = False) -> RefinementResult:
     """The :class:`RefinementResult` of a split latent refined in its linear block alone; the sample
     mean error is that of ``n_samples`` draws of the latent (candidates by weight, z_lin exact)."""
     mf = mask.astype(np.float64)
@@ -181,16 +186,20 @@ def _split_result(prim: "DeepProMP", split: SplitRefinement, x, y, mask, n_sampl
     return RefinementResult(latent=split.latent, max_error=max_err, errors=r,
                             sample_mean_error=float(np.abs((y - y_bar) * mf).max()), iterations=split.iterations,
                             reachable=max_err <= split.tol, reason=split.reason,
-                            error_history=np.minimum.accumulate(np.array(split.history)))
+                            error_history=np.minimum.accumulate(np.array(split.history)),
+                            out_of_time=out_of_time and max_err > split.tol)
 
 
 class _MeanFit:
     """Stage 1 of :func:`refine_exact`: μ̃ such that μ_y(μ̃, x) meets the via-points, with the best
-    iterate of every run and the non-increasing error history."""
+    iterate of every run and the non-increasing error history. No iteration starts after
+    ``deadline`` (a :func:`time.perf_counter` time); ``out_of_time`` then says so."""
 
     def __init__(self, prim: "DeepProMP", x: np.ndarray, y: np.ndarray, mask: np.ndarray, tol: float,
-                 latent_bound: float):
+                 latent_bound: float, deadline: float = math.inf, time_budget: float | None = None):
         self.prim, self.x, self.y, self.tol, self.latent_bound = prim, x, y, tol, latent_bound
+        self.deadline, self.time_budget, self.out_of_time = deadline, time_budget, False
+        self.eval_seconds = 0.0  # longest wall time of one residual and Jacobian evaluation
         self.mf = mask.astype(np.float64)
         self.smoothing: float | None = None  # β of the decoder's softplus surrogate, None = exact
         self.eye = np.eye(prim.latent_dim)
@@ -199,8 +208,10 @@ class _MeanFit:
         self.best_err = math.inf
 
     def residual(self, z):
+        t0 = time.perf_counter()
         y_hat, jac = self.prim.decoder_jacobian(z, self.x, self.smoothing)
         r = (self.y - y_hat) * self.mf
+        self.eval_seconds = max(self.eval_seconds, time.perf_counter() - t0)
         return r, jac * self.mf[:, :, None]
 
     def record(self, mu, r):
@@ -231,6 +242,9 @@ class _MeanFit:
                 return mu, r, it, "converged"
             if np.abs(g).max() < 1e-15 * max(1.0, cost):
                 return mu, r, it, "stationary (zero gradient)"
+            if time.perf_counter() >= self.deadline:
+                self.out_of_time = True
+                return mu, r, it, f"time budget of {self.time_budget:g} s used up"
             it += 1
             step = np.clip(mu + np.linalg.solve(A + lam * self.eye, g), -bound, bound) - mu
             r_new, jac_new = self.residual(mu + step)
@@ -259,7 +273,8 @@ class _MeanFit:
            LM runs on smooth surrogates (softplus of increasing sharpness β), then polishes on
            the exact decoder — the trajectory that is executed. The better fit is kept."""
         mu, r, it, reason = self.levenberg_marquardt(mu0, max(1, budget // 4))
-        if np.abs(r).max() > self.tol and budget - it > len(smoothing_schedule) and smoothing_schedule:
+        if (np.abs(r).max() > self.tol and budget - it > len(smoothing_schedule) and smoothing_schedule
+                and not self.out_of_time):
             mu2 = mu0
             for beta in smoothing_schedule:
                 self.smoothing = beta
@@ -282,7 +297,8 @@ class _MeanFit:
             np.clip(latent.mean, -self.latent_bound, self.latent_bound).astype(np.float64), max_iterations,
             smoothing_schedule)
         restarts = 0
-        while np.abs(r).max() > self.tol and it < max_iterations and restarts < max_restarts:
+        while (np.abs(r).max() > self.tol and it < max_iterations and restarts < max_restarts
+               and not self.out_of_time):
             restarts += 1
             start = mu + rng.standard_normal(self.prim.latent_dim) * 0.05 * np.sqrt(latent.var)
             mu2, r2, it2, reason2 = self.levenberg_marquardt(start, max_iterations - it)
@@ -303,11 +319,18 @@ class _MeanFit:
 
 
 def _fit_std(prim: "DeepProMP", mu: np.ndarray, x: np.ndarray, y: np.ndarray, mf: np.ndarray, eps: np.ndarray,
-             s_target: np.ndarray, sigma_iterations: int) -> np.ndarray:
+             s_target: np.ndarray, sigma_iterations: int, deadline: float = math.inf,
+             eval_seconds: float = 0.0) -> tuple[np.ndarray, bool]:
     """Stage 2 of :func:`refine_exact`: σ̃ minimizing the paper's objective
     Σ_i ||y_i − 1/K Σ_k μ_y(μ̃ + ε_k σ̃, x_i)||² + ||σ* − σ̃||² at the refined mean, with the K
-    fixed samples ``eps`` (K, k), by damped Gauss–Newton (``sigma_iterations`` steps, σ̃ ≥ 1e-6)."""
+    fixed samples ``eps`` (K, k), by damped Gauss–Newton (``sigma_iterations`` steps, σ̃ ≥ 1e-6).
+
+    An evaluation (K decoder Jacobians, estimated as K x ``eval_seconds``, the longest one of
+    stage 1) starts only if it ends before ``deadline``. Returns (σ̃, True when that cut it short)."""
     s = s_target.copy()
+
+    def in_time():
+        return time.perf_counter() + eps.shape[0] * eval_seconds < deadline
 
     def s_residual(s):
         # residual [y − ȳ(σ̃); σ* − σ̃] and the Jacobian of the model part [∂ȳ/∂σ̃; I]
@@ -318,10 +341,14 @@ def _fit_std(prim: "DeepProMP", mu: np.ndarray, x: np.ndarray, y: np.ndarray, mf
                 np.concatenate([j_y.reshape(-1, s.size), np.eye(s.size)]))
 
     if sigma_iterations > 0:
+        if not in_time():
+            return s, True
         rs, jm = s_residual(s)
         c = float(rs @ rs)
         lam_s = 1e-3
         for _ in range(sigma_iterations):
+            if not in_time():
+                return s, True
             step = np.linalg.solve(jm.T @ jm + lam_s * np.eye(s.size), jm.T @ rs)
             s_new = np.maximum(s + step, 1e-6)
             rs_new, jm_new = s_residual(s_new)
@@ -332,14 +359,14 @@ def _fit_std(prim: "DeepProMP", mu: np.ndarray, x: np.ndarray, y: np.ndarray, mf
                 lam_s *= 4
                 if lam_s > 1e8:
                     break
-    return s
+    return s, False
 
 
 def refine_exact(prim: "DeepProMP", latent: LatentGaussian, via_x, via_y, joint_mask=None,
                  max_iterations: int = 200, tol: float = 1e-6, n_samples: int = 16, seed: int = 0,
                  sigma_target: np.ndarray | None = None, sigma_iterations: int = 5, max_restarts: int = 5,
                  smoothing_schedule: Sequence[float] = (3.0, 10.0, 30.0, 100.0),
-                 latent_bound: float = 5.0) -> RefinementResult:
+                 latent_bound: float = 5.0, time_budget: float | None = None) -> RefinementResult:
     """Refinement that meets the via-points exactly (paper Eq. 5 and appendix).
 
     Stage 1 moves μ̃ — starting at the given (posterior) mean — so that the trajectory the robot
@@ -377,31 +404,47 @@ def refine_exact(prim: "DeepProMP", latent: LatentGaussian, via_x, via_y, joint_
         μ̃ stays in the box |μ̃_i| ≤ latent_bound (units of the prior's std). The ReLU decoder
         extrapolates linearly, so almost any target is "reachable" with a huge z — far outside
         what was demonstrated. Via-points that need more are reported unreachable.
+    time_budget : float, optional
+        Wall time (s) after which no iteration of either stage starts (None: no limit); stage 2
+        starts an evaluation only if it is expected to end within the budget. The best fit found
+        by then is returned; unmet, it says ``reachable=False`` and ``out_of_time=True``. The time
+        used exceeds the budget by about one iteration and the decoding of the result.
     """
     x, y, mask = refinement_inputs(prim, via_x, via_y, joint_mask, max_iterations, tol)
+    if time_budget is not None and not (time_budget > 0 and math.isfinite(time_budget)):
+        raise ValueError(f"time_budget must be a finite number of seconds > 0 (or None: no limit); got {time_budget}")
+    deadline = math.inf if time_budget is None else time.perf_counter() + time_budget
     split = None
     if latent.linear is not None and latent.context_mean is not None:
-        split = refine_split(prim._np, latent, x, y, mask, tol, max_iterations)
-        if split.max_error <= tol or split.iterations >= max_iterations:
-            return _split_result(prim, split, x, y, mask, n_samples, seed)
+        split = refine_split(prim._np, latent, x, y, mask, tol, max_iterations, deadline=deadline)
+        if split.max_error <= tol or split.iterations >= max_iterations or time.perf_counter() >= deadline:
+            # unmet with iterations left: the time budget ended it (in refine_split or before stage 1)
+            res = _split_result(prim, split, x, y, mask, n_samples, seed, split.iterations < max_iterations)
+            return dataclasses.replace(res, reason=f"{res.reason} (time budget of {time_budget:g} s)"
+                                       if res.out_of_time else res.reason)
         latent = split.latent
-    fit = _MeanFit(prim, x, y, mask, tol, latent_bound)
+    fit = _MeanFit(prim, x, y, mask, tol, latent_bound, deadline, time_budget)
     budget = max_iterations - (split.iterations if split else 0)
     mu, r, it, reason = fit.run(latent, budget, max_restarts, smoothing_schedule, seed)
     max_err = float(np.abs(r).max())
     if split is not None:
         it += split.iterations
         if split.max_error <= max_err:  # the box |μ̃| <= latent_bound kept the fit from the split latent's mean
-            return dataclasses.replace(_split_result(prim, split, x, y, mask, n_samples, seed), iterations=it,
-                                       reason=f"{split.reason}; then {reason} without a better fit")
+            return dataclasses.replace(_split_result(prim, split, x, y, mask, n_samples, seed, fit.out_of_time),
+                                       iterations=it, reason=f"{split.reason}; then {reason} without a better fit")
         fit.history[:0] = split.history[:-1]
 
     # Stage 2: σ̃ with fixed ε (paper objective in σ̃ at the refined mean).
     eps = np.random.default_rng(seed).standard_normal((n_samples, prim.latent_dim))
     s_target = np.sqrt(latent.var) if sigma_target is None else np.asarray(sigma_target, dtype=np.float64)
-    s = _fit_std(prim, mu, x, y, fit.mf, eps, s_target, sigma_iterations)
+    s, cut = _fit_std(prim, mu, x, y, fit.mf, eps, s_target, sigma_iterations, deadline, fit.eval_seconds)
+    out_of_time = fit.out_of_time and max_err > tol
+    if out_of_time and "time budget" not in reason:  # the best fit came from a run that ended otherwise
+        reason += f"; then the time budget of {time_budget:g} s was used up"
+    if cut and not fit.out_of_time:
+        reason += f"; σ̃ fit cut short by the time budget of {time_budget:g} s"
     y_bar = prim.decode(mu[None] + eps * s[None], x).mean(0)
     return RefinementResult(
         latent=LatentGaussian(mu, s ** 2), max_error=max_err, errors=r, iterations=it,
         sample_mean_error=float(np.abs((y - y_bar) * fit.mf).max()), reachable=max_err <= tol, reason=reason,
-        error_history=np.array(fit.history))
+        error_history=np.array(fit.history), out_of_time=out_of_time)

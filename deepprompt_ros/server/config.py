@@ -114,11 +114,21 @@ class ServerConfig(LoopSettings):
     max_via_points: int = param(1000, "Largest number of via-points (and blending-schedule knots) accepted.",
                                 min=1, max=1000000)
     max_images: int = param(16, "Largest number of images in one image context.", min=1, max=1000)
+    max_blend_parts: int = param(16, "Largest number of conditioned distributions one blended handle is made "
+                                 "of, counted with repeats (a blend of a handle with itself has twice its "
+                                 "parts): every part is evaluated at every phase the handle is decoded at.",
+                                 min=2, max=1024)
     max_samples: int = param(1000, "Largest Sample.n_samples accepted.", min=1, max=1000000)
-    max_sample_values: int = param(5000000, "Largest n_samples x n_points x joints of one Sample response.",
-                                   min=1000, max=100000000)
+    max_sample_points: int = param(20000, "Largest n_samples x n_points of one Sample request: the trajectory "
+                                   "points the decoder evaluates, which its time grows with.",
+                                   min=100, max=100000000)
     refine_max_iterations: int = param(200, "Default refinement iteration budget (Condition."
                                        "refine_max_iterations = 0).", min=1, max=10000)
+    refine_time_budget: float = param(0.5, "Wall time after which a Condition's refinement starts no further "
+                                      "iteration: it ends with the best fit found and, unmet, with "
+                                      "REFINEMENT_UNREACHABLE and a message saying the time budget ended it. The "
+                                      "service thread answers one request at a time, so this bounds how long "
+                                      "one Condition holds up the others.", min=0.01, max=600.0, unit="s")
     refine_tolerance: float = param(1e-6, "Default refinement tolerance on the via-point error.",
                                     min=1e-12, max=1.0, unit="rad")
     max_cycles: int = param(100000, "Largest Execute.cycles accepted (rhythmic primitives).", min=1, max=10**9)

@@ -108,6 +108,11 @@ class ConditionedLatent:
     latent: LatentGaussian
 
     @property
+    def parts(self) -> int:
+        """One conditioned distribution."""
+        return 1
+
+    @property
     def eps(self) -> None:
         """Conditioned handles follow their mean (ε = 0)."""
         return None
@@ -136,6 +141,9 @@ class BlendedLatent:
         ω(x), the weight of ``a``.
     eps : array, shape (k,), or None
         The ONE noise draw of the trajectory, z(x) = μ_b(x) + ε σ_b(x); None follows μ_b(x).
+    parts : int
+        The conditioned distributions it is made of, counted with repeats (``a.parts + b.parts``):
+        :meth:`latent_at` evaluates each of them, so its time grows with this number.
     """
 
     primitive: str
@@ -143,8 +151,10 @@ class BlendedLatent:
     b: "StoredDistribution"
     schedule: Schedule
     eps: np.ndarray | None = None
+    parts: int = dataclasses.field(init=False, repr=False, compare=False)
 
     def __post_init__(self):
+        object.__setattr__(self, "parts", self.a.parts + self.b.parts)
         for part in (self.a, self.b):
             if part.primitive != self.primitive:
                 raise ValueError(f"blending needs both distributions of one primitive; got "

@@ -285,12 +285,13 @@ class PrimitiveServerCore:
 
         # ---- error of the executed mean at the via-points, optional refinement (paper Eq. 5)
         active = vw > 0
-        iterations, reason = 0, ""
+        iterations, reason, out_of_time = 0, "", False
         if active.any():
             xa, ya, ma = vx[active], vy[active], vmask[active]
             if req.refine:
-                res = model.refine(latent, xa, ya, ma, max_iterations=iters, tol=tol)
-                latent, iterations, reason = res.latent, res.iterations, res.reason
+                res = model.refine(latent, xa, ya, ma, max_iterations=iters, tol=tol,
+                                   time_budget=cfg.refine_time_budget)
+                latent, iterations, reason, out_of_time = res.latent, res.iterations, res.reason, res.out_of_time
                 max_err = res.max_error
             else:
                 max_err = float(np.abs((model.decode(latent.mean, xa) - ya)[ma]).max())
@@ -300,7 +301,14 @@ class PrimitiveServerCore:
         dist = ConditionedLatent(prim.name, latent)
         handle, expires = self._store(dist)
         preview = self._preview(prim, dist, n_points)
-        if req.refine and not reachable:
+        if req.refine and not reachable and out_of_time:
+            code = Code.REFINEMENT_UNREACHABLE
+            msg = (f"refinement stopped by its time budget of {cfg.refine_time_budget:g} s (parameter "
+                   f"refine_time_budget) after {iterations} iterations with max via-point error {max_err:.3g} rad > "
+                   f"tolerance {tol:g} rad: the via-points were not met in that time (fewer via-points, a looser "
+                   f"tolerance or a larger refine_time_budget may meet them); handle '{handle}' holds the best fit "
+                   f"({reason})")
+        elif req.refine and not reachable:
             code = Code.REFINEMENT_UNREACHABLE
             msg = (f"refinement stopped ({reason}) after {iterations} iterations with max via-point error "
                    f"{max_err:.3g} rad > tolerance {tol:g} rad: the via-points cannot all be met by this "
@@ -322,6 +330,12 @@ class PrimitiveServerCore:
                                f"'{b.primitive}'; blending combines latent distributions of ONE primitive "
                                "(one decoder), so both handles must come from the same primitive")
         prim = self._primitive(a.primitive)
+        parts = a.parts + b.parts
+        if parts > self.config.max_blend_parts:
+            raise RequestError(Code.INVALID_REQUEST, f"handle_a is made of {a.parts} and handle_b of {b.parts} "
+                               f"conditioned distributions: their blend would be made of {parts}; the server accepts "
+                               f"at most {self.config.max_blend_parts} (parameter max_blend_parts): blend handles "
+                               "from Condition, or blends of fewer parts")
         nx, nw = len(req.schedule_phases), len(req.schedule_weights)
         if max(nx, nw) > self.config.max_via_points:
             raise RequestError(Code.INVALID_REQUEST, f"schedule has {max(nx, nw)} knots; the server accepts at most "
@@ -361,10 +375,10 @@ class PrimitiveServerCore:
             raise RequestError(Code.INVALID_REQUEST, f"n_samples = {s}; expected 0 (= 1) or 1..{self.config.max_samples}"
                                " (parameter max_samples)")
         t = self._n_points(req.n_points, "n_points")
-        total = s * t * prim.model.n_joints
-        if total > self.config.max_sample_values:
-            raise RequestError(Code.INVALID_REQUEST, f"n_samples x n_points x joints = {total} values; the server "
-                               f"returns at most {self.config.max_sample_values} (parameter max_sample_values)")
+        if s * t > self.config.max_sample_points:
+            raise RequestError(Code.INVALID_REQUEST, f"n_samples x n_points = {s} x {t} = {s * t} trajectory points; "
+                               f"the server decodes at most {self.config.max_sample_points} per request (parameter "
+                               "max_sample_points): ask for fewer samples or points, or in several requests")
         x = np.linspace(0.0, 1.0, t)
         return SampleResult(prim.joint_names, x, self._samples(prim, dist, x, s, int(req.seed) & 0xFFFFFFFFFFFFFFFF))
 
