@@ -51,12 +51,15 @@ class Normalization:
 
 def normalization_tensors(norm: Normalization) -> dict[str, torch.Tensor]:
     """The float64 tensors ``norm.y_mean``, ``norm.y_std``, ``norm.ctx_mean.<name>``,
-    ``norm.ctx_std.<name>`` under which a model file stores ``norm``."""
-    tensors = {"norm.y_mean": torch.as_tensor(np.asarray(norm.y_mean, dtype=np.float64)),
-               "norm.y_std": torch.as_tensor(np.asarray(norm.y_std, dtype=np.float64))}
+    ``norm.ctx_std.<name>`` under which a model file stores ``norm`` (copies: the normalization's
+    arrays may be read-only, which torch does not support, and stay unshared)."""
+    def tensor(v) -> torch.Tensor:
+        return torch.as_tensor(np.array(v, dtype=np.float64, copy=True))
+
+    tensors = {"norm.y_mean": tensor(norm.y_mean), "norm.y_std": tensor(norm.y_std)}
     for name in norm.ctx_mean:
-        tensors[f"norm.ctx_mean.{name}"] = torch.as_tensor(np.asarray(norm.ctx_mean[name], dtype=np.float64))
-        tensors[f"norm.ctx_std.{name}"] = torch.as_tensor(np.asarray(norm.ctx_std[name], dtype=np.float64))
+        tensors[f"norm.ctx_mean.{name}"] = tensor(norm.ctx_mean[name])
+        tensors[f"norm.ctx_std.{name}"] = tensor(norm.ctx_std[name])
     return tensors
 
 
