@@ -17,9 +17,10 @@ cancels of finished goals). About a third of the requests are well formed (they 
 the others use); the rest break one or more fields: NaN / inf / huge / subnormal values, wrong
 lengths, empty and 10 000-element arrays, phases outside [0, 1], unknown primitives and handles,
 4-billion counts (uint32 max), images of the wrong size, step, data length and encoding, joint
-masks of the wrong length, negative or NaN weights, contradictory timing. The valid heavy
-requests the server's bounds allow (1 000 via-points, 10 000 preview points, 1 000 samples) are
-in the mix too, and so is refinement with 10 000 iterations. At the end every client cancels its goals
+masks of the wrong length, negative or NaN weights, contradictory timing. The largest requests the
+server's shipped limits accept (:data:`LIMITS`: max_via_points via-points and blending knots,
+max_preview_points preview points, max_sample_points sample points) are in the mix too, and so is
+refinement with 10 000 iterations (ended by refine_time_budget), and so are blends of blends. At the end every client cancels its goals
 that still run and waits for their results.
 
 The clients are planners that do not lose answers on their side: before the run each has had one
@@ -43,6 +44,8 @@ Figures (last line):
   Condition must succeed with a full preview and an Execute of its handle must succeed (target 0);
 * ``fuzz_no_message`` -- refusals without a code and a message (target 0);
 * ``fuzz_internal_errors`` -- answers with code INTERNAL_ERROR (target 0);
+* ``fuzz_longest_answer_s`` -- the longest time an answered request waited for its answer (a goal:
+  for its acceptance), queueing behind the other clients' requests included;
 * ``fuzz_wall_s``, ``fuzz_requests_per_s`` -- wall-clock time of the clients' run and its throughput.
 """
 from __future__ import annotations
@@ -65,6 +68,10 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from deepprompt_ros.common.results import Code  # noqa: E402  (ROS-free: the test imports this module)
+from deepprompt_ros.server.config import ServerConfig  # noqa: E402
+
+#: the server's request limits: its defaults (a --param that changes one is not known to the clients)
+LIMITS = ServerConfig()
 
 SERVER = "/primitive_server"
 NAN, INF = float("nan"), float("inf")
@@ -111,9 +118,11 @@ def figures(records, crashes: int, wall_s: float) -> dict:
     if unknown:
         raise ValueError(f"records with unknown outcomes {sorted(unknown)}; expected one of {OUTCOMES}")
     n = len(records)
+    longest = max((r["answer_s"] for r in records if r["outcome"] != "unanswered" and "answer_s" in r), default=0.0)
     return dict(fuzz_requests=n, fuzz_unanswered=counts["unanswered"], fuzz_crashes=int(crashes),
                 fuzz_no_message=counts["no_message"], fuzz_internal_errors=counts["internal_error"],
-                fuzz_wall_s=float(wall_s), fuzz_requests_per_s=float(n / wall_s) if wall_s > 0 else 0.0)
+                fuzz_longest_answer_s=float(longest), fuzz_wall_s=float(wall_s),
+                fuzz_requests_per_s=float(n / wall_s) if wall_s > 0 else 0.0)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -218,10 +227,10 @@ class Factory:
         d = len(info.joint_names)
         n = int(self._pick((0, 1, 1, 2, 3, 5, 5, 10, 30)))
         if self._break("via_points count", 0.1):
-            n = int(self._bad("len(via_points)", (1000, 1001, 10000)))
+            n = int(self._bad("len(via_points)", (LIMITS.max_via_points + 1, 10000)))
         elif self.rng.random() < 0.01:
-            n = 1000
-            self._notes.append("len(via_points)=1000 (heavy)")
+            n = LIMITS.max_via_points
+            self._notes.append(f"len(via_points)={n} (heavy)")
         # at most 30 distinct via-points; a longer list repeats them (building 10 000 distinct messages
         # in Python would take longer than the server takes to refuse them)
         distinct = [self._via_point(f"vp{i}", d, long=n <= 30) for i in range(min(n, 30))]
@@ -349,8 +358,8 @@ class Factory:
             w = self.rng.uniform(0.0, 1.0, m)
             if self._break("schedule", 0.5):
                 kind = self._bad("schedule", ("unsorted", "duplicate phase", "NaN phase", "weight > 1",
-                                              "negative weight", "phase > 1", "lengths differ", "1001 knots",
-                                              "10000 knots", "inf weight"))
+                                              "negative weight", "phase > 1", "lengths differ",
+                                              f"{LIMITS.max_via_points + 1} knots", "10000 knots", "inf weight"))
                 if kind == "unsorted" and m > 1:
                     x = x[::-1]
                 elif kind == "duplicate phase" and m > 1:
@@ -365,11 +374,15 @@ class Factory:
                     x[-1] = 2.0
                 elif kind == "lengths differ":
                     w = np.append(w, 0.5)
-                elif kind in ("1001 knots", "10000 knots"):
+                elif kind.endswith(" knots"):
                     k = int(kind.split()[0])
                     x, w = np.linspace(0.0, 1.0, k), self.rng.uniform(0.0, 1.0, k)
                 else:
                     w[0] = INF
+            elif self.rng.random() < 0.04:
+                m = LIMITS.max_via_points
+                x, w = np.linspace(0.0, 1.0, m), self.rng.uniform(0.0, 1.0, m)
+                self._notes.append(f"{m} knots (heavy)")
             req.schedule_phases, req.schedule_weights = x.tolist(), w.tolist()
         req.preview_points = self._count("preview_points", (0, 2, 50, 100), (1, 10001, UINT32_MAX), (10000,))
         req.sample = bool(self.rng.random() < 0.5)
@@ -389,8 +402,14 @@ class Factory:
             if self._break("both handle and primitive", 0.2):
                 req.handle = self._handle()
                 self._notes.append("handle and primitive both set")
-        req.n_samples = self._count("n_samples", (0, 1, 2, 5, 20), (1001, UINT32_MAX), (1000,))
-        req.n_points = self._count("n_points", (0, 2, 50, 100), (1, 10001, UINT32_MAX), (1000, 10000))
+        req.n_samples = self._count("n_samples", (0, 1, 2, 5, 20), (LIMITS.max_samples + 1, UINT32_MAX),
+                                    (LIMITS.max_samples,))
+        req.n_points = self._count("n_points", (0, 2, 50, 100), (1, LIMITS.max_preview_points + 1, UINT32_MAX),
+                                   (1000, LIMITS.max_preview_points))
+        if not self._breaking and self.rng.random() < 0.03:  # the most points the server decodes for one request
+            s = int(self._pick((LIMITS.max_samples, LIMITS.max_sample_points // LIMITS.max_preview_points)))
+            req.n_samples, req.n_points = s, LIMITS.max_sample_points // s
+            self._notes.append(f"n_samples x n_points = {s} x {req.n_points} (heavy)")
         req.seed = int(self._pick((0, 7, INT64_MIN, INT64_MAX, -1)))
         return req, self._note()
 
@@ -513,9 +532,14 @@ class Client:
                     return True
         return False
 
-    def _record(self, kind: str, note: str, outcome: str, t0: float, code=None, message: str = "") -> dict:
+    def _record(self, kind: str, note: str, outcome: str, t0: float, code=None, message: str = "",
+                answer_s: float | None = None) -> dict:
+        """``seconds``: from sending to now (a goal: to its result); ``answer_s``: to its answer (a goal:
+        to its acceptance; default ``seconds``)."""
+        seconds = time.perf_counter() - t0
         rec = dict(kind=kind, outcome=outcome, code=None if code is None else int(code),
-                   message=str(message)[:400], note=note[:400], seconds=time.perf_counter() - t0)
+                   message=str(message)[:400], note=note[:400], seconds=seconds,
+                   answer_s=seconds if answer_s is None else float(answer_s))
         self.records.append(rec)
         return rec
 
@@ -551,10 +575,12 @@ class Client:
             self._record("goal", note, "unanswered", t0, message="no goal response")
             return
         gh = fut.result()
+        accept_s = time.perf_counter() - t0
         if not gh.accepted:
             self._record("goal", note, "no_message", t0, message="goal rejected (a rejection carries no message)")
             return
-        self.goals.append(dict(gh=gh, fut=gh.get_result_async(), note=note, t0=t0, wall=time.time(), cancel_sent=None))
+        self.goals.append(dict(gh=gh, fut=gh.get_result_async(), note=note, t0=t0, accept_s=accept_s, wall=time.time(),
+                               cancel_sent=None))
         r = self.rng.random()
         if r < 0.15:  # cancel at once
             self.cancel(self.goals[-1])
@@ -600,11 +626,11 @@ class Client:
             if g["fut"].done():
                 res = g["fut"].result().result
                 self._record("goal", g["note"], classify(True, res.success, res.code.value, res.message), g["t0"],
-                             res.code.value, res.message)
+                             res.code.value, res.message, answer_s=g["accept_s"])
                 self.finished.append(g["gh"])
                 del self.finished[:-32]
             elif final:
-                self._record("goal", g["note"], "unanswered", g["t0"], message=(
+                self._record("goal", g["note"], "unanswered", g["t0"], answer_s=g["accept_s"], message=(
                     f"no result {self.timeout:g} s after the cancel; goal {bytes(g['gh'].goal_id.uuid).hex()} "
                     f"sent at {g['wall']:.3f}, its last status {g['gh'].status}"))
             else:
@@ -740,23 +766,28 @@ def _stop_all(procs) -> None:
 
 
 def report(records, fig: dict, problems: list[str], header: str) -> None:
-    """The table of outcomes per kind, the codes, the examples of every bad outcome, the last line."""
+    """The table of outcomes per kind with the answer times (p50 and longest over the answered requests;
+    a goal's: to its acceptance), the codes, the slowest answers, the examples of every bad outcome,
+    the last line."""
     print(header)
     by_kind: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
-    seconds = collections.defaultdict(list)
+    answer = collections.defaultdict(list)
     for r in records:
         by_kind[r["kind"]][r["outcome"]] += 1
-        seconds[r["kind"]].append(r["seconds"])
-    print(f"{'kind':16s} {'sent':>6s} " + " ".join(f"{o:>14s}" for o in OUTCOMES) + f" {'p50 ms':>8s} {'max ms':>8s}")
+        if r["outcome"] != "unanswered":
+            answer[r["kind"]].append(r["answer_s"])
+    print(f"{'kind':16s} {'sent':>6s} " + " ".join(f"{o:>14s}" for o in OUTCOMES)
+          + f" {'p50 ms':>8s} {'max ms':>8s}  (answered)")
     for kind in sorted(by_kind):
-        cnt, s = by_kind[kind], np.array(seconds[kind]) * 1e3
+        cnt, s = by_kind[kind], np.array(answer[kind] or [np.nan]) * 1e3
         print(f"{kind:16s} {sum(cnt.values()):6d} " + " ".join(f"{cnt[o]:14d}" for o in OUTCOMES)
               + f" {np.percentile(s, 50):8.1f} {s.max():8.1f}")
     codes = collections.Counter(r["code"] for r in records if r["code"] is not None)
     names = {int(c): c.name for c in Code}
     print("codes: " + ", ".join(f"{names.get(k, k)} {v}" for k, v in sorted(codes.items())))
-    slow = sorted(records, key=lambda r: -r["seconds"])[:5]
-    print("slowest: " + "; ".join(f"{r['kind']} {r['seconds']:.2f} s [{r['note'] or 'well formed'}]" for r in slow))
+    slow = sorted((r for r in records if r["outcome"] != "unanswered"), key=lambda r: -r["answer_s"])[:5]
+    print("slowest answers: " + "; ".join(f"{r['kind']} {r['answer_s']:.2f} s [{r['note'] or 'well formed'}]"
+                                          for r in slow))
     for outcome in ("unanswered", "no_message", "internal_error"):
         bad = [r for r in records if r["outcome"] == outcome]
         for r in bad[:10]:
