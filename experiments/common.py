@@ -68,6 +68,8 @@ class Scale:
     refine_sets, refine_n_via, refine_budgets : refinement sets per N, the N's, iteration budgets
     rhythmic_cycles : cycles shown in the rhythmic experiment
     small_task, small_* : small-data experiment task and sizes
+    goal_sets, goal_samples : the goals' random planner via-point sets per model and samples per
+        conditioning (:func:`experiments.goal_metrics.measure`)
     """
 
     name: str
@@ -89,23 +91,25 @@ class Scale:
     small_n_test: int = 10
     small_seeds: int = 1
     small_steps: int = 150
+    goal_sets: int = 50
+    goal_samples: int = 50
 
 
 SCALES = {
     "tiny": Scale("tiny", recon_tasks=("gen3_lite_reach",), recon_seeds=2, recon_steps=30, recon_val_every=15,
                   builtin_sizes=(40, 8, 10), refine_sets=2, refine_budgets=(1, 10, 200), small_n_test=5,
-                  small_steps=30, rhythmic_train_steps=60),
+                  small_steps=30, rhythmic_train_steps=60, goal_sets=10, goal_samples=20),
     "quick": Scale("quick", recon_tasks=("gen3_lite_reach",), recon_seeds=2, recon_steps=100, recon_val_every=50,
                    builtin_sizes=(60, 15, 25), refine_sets=3, refine_budgets=(1, 3, 10, 200), small_n_test=10,
-                   small_steps=150),
+                   small_steps=150, goal_sets=20),
     "medium": Scale("medium", recon_seeds=2, recon_steps=500, recon_val_every=100, builtin_sizes=(100, 20, 50),
                     task_sizes=(60, 15, 30), task_quick=False, refine_sets=20,
                     refine_budgets=(1, 2, 3, 5, 10, 20, 50, 100, 200), small_task="close_box", small_n_test=30,
-                    small_seeds=3, small_steps=1500, rhythmic_train_steps=3000),
+                    small_seeds=3, small_steps=1500, rhythmic_train_steps=3000, goal_sets=100),
     "full": Scale("full", recon_seeds=3, recon_steps=2000, recon_val_every=250, builtin_sizes=(200, 50, 100),
                   task_sizes=(200, 50, 100), task_quick=False, refine_sets=50,
                   refine_budgets=(1, 2, 3, 5, 10, 20, 50, 100, 200), small_task="close_box", small_n_test=50,
-                  small_seeds=3, small_steps=3000, rhythmic_train_steps=3000),
+                  small_seeds=3, small_steps=3000, rhythmic_train_steps=3000, goal_sets=100),
 }
 
 

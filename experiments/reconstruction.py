@@ -20,7 +20,9 @@ bootstraps ProMP). ProMP takes no images, so its aggregate averages fewer condit
 
 Each (task, model, seed) is a unit (:func:`fit_unit`, :mod:`experiments.units`): stored when it is
 done, read back by the next run with the same key (:func:`task_units`), computed in worker processes
-with ``jobs`` > 1.
+with ``jobs`` > 1. A DeepProMP unit also measures the goals of :mod:`experiments.goal_metrics` on its
+model and on its ablation, a ``promp_full`` unit on its ProMP; the goals experiment
+(:mod:`experiments.goals`) adds the :data:`VARIANTS` and reads the same units.
 """
 from __future__ import annotations
 
@@ -31,13 +33,14 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
+from deepprompt_ros.baselines.deep_promp_model import DeepProMPModel
 from deepprompt_ros.baselines.promp_model import ProMPModel
 from deepprompt_ros.baselines.registry import MODEL_CLASSES
 from deepprompt_ros.evaluation.reconstruction import available_conditionings, reconstruction_mse
 from deepprompt_ros.data.demo_dataset import DemoDataset
 from deepprompt_ros.training.config import TrainConfig
 
-from . import common
+from . import common, goal_metrics
 from .common import Scale, TaskData
 from .units import Unit, UnitCache, UnitReport, run_units
 
@@ -45,8 +48,16 @@ CONDITIONING_LABELS = {"via_point": "Via Point", "image": "Image", "low_dim": "L
                        "aggregate": "Aggregate", "via_5": "5 via-points"}
 PAPER_CONDITIONINGS = ("via_point", "image", "low_dim", "image+low", "aggregate")
 MODEL_LABELS = {"deepprompt": "DeepProMP", "promp": "ProMP", "cnmp": "CNMP", "vae_cnmp": "VAE-CNMP",
-                "cnmp_indep": "CNMP (Indep)", "vae_cnmp_indep": "VAE-CNMP (Indep)"}
+                "cnmp_indep": "CNMP (Indep)", "vae_cnmp_indep": "VAE-CNMP (Indep)",
+                "deepprompt_paper": "DeepProMP, objective: paper", "promp_full": "ProMP (whole training split)"}
 N_VIA_EXTRA = 5
+#: Models that are not in the registry's list, by kind: (class, changes of the training config,
+#: ProMP on bootstrap resamples). ``deepprompt_paper``: DeepProMP trained with the paper's own
+#: objective; ``promp_full``: ProMP fitted on the whole training split (its seed only moves the
+#: folds of its cross-validation), the comparison of the goals.
+VARIANTS = {"deepprompt_paper": (DeepProMPModel, {"objective": "paper"}), "promp_full": (ProMPModel, {})}
+#: The kinds whose units measure the goals (:func:`goal_metrics.measure`); a DeepProMP unit's ablation too.
+GOAL_KINDS = ("deepprompt", "deepprompt_paper", "promp_full")
 
 
 def bootstrap(ds: DemoDataset, seed: int) -> DemoDataset:
@@ -65,47 +76,77 @@ def evaluate(model, test: DemoDataset, n_points: int) -> dict[str, float]:
 
 
 # The files whose code determines a unit's result (their digest is part of every unit's key).
-SOURCES = ("experiments/reconstruction.py", "experiments/common.py", "deepprompt_ros/**/*.py")
+SOURCES = ("experiments/reconstruction.py", "experiments/common.py", "experiments/goal_metrics.py",
+           "bench/plot_bimodal.py", "deepprompt_ros/**/*.py")
 
 
-def fit_unit(tasks: Mapping[str, TaskData], task: str, kind: str, seed: int, cfg: TrainConfig) -> dict:
+def fit_unit(tasks: Mapping[str, TaskData], task: str, kind: str, seed: int, cfg: TrainConfig,
+             goals: Mapping | None = None) -> dict:
     """One unit of the experiment: model ``kind`` trained with ``cfg`` (seed ``seed``; ProMP on bootstrap
-    resample ``seed`` of the training set) on ``tasks[task]`` and evaluated on its test demos:
-    ``{seed, mse: {cond: value}, fit_s, eval_s}``."""
+    resample ``seed`` of the training set, ``promp_full`` on all of it) on ``tasks[task]`` and evaluated
+    on its test demos: ``{seed, mse: {cond: value}, fit_s, eval_s}``; for the :data:`GOAL_KINDS` also
+    ``goals`` (:func:`goal_metrics.measure` with the parameters ``goals``) and, for DeepProMP,
+    ``ablation`` (``mse`` and ``goals`` of :class:`goal_metrics.AblatedDeepProMP`)."""
     data = tasks[task]
     cls = MODEL_CLASSES_BY_KIND[kind]
     t0 = time.perf_counter()
-    if cls is ProMPModel:
-        model = cls().fit(bootstrap(data.train, seed), cfg, data.val)
+    if kind == "promp":
+        model = cls(log=lambda s: None).fit(bootstrap(data.train, seed), cfg, data.val)
+    elif cls is ProMPModel:
+        model = cls(log=lambda s: None).fit(data.train, cfg, data.val)
     else:
         model = cls().fit(data.train, cfg, data.val)
     fit_s = time.perf_counter() - t0
-    mse = evaluate(model, data.test, cfg.n_points)
-    return {"seed": seed, "mse": mse, "fit_s": fit_s, "eval_s": time.perf_counter() - t0 - fit_s}
+    out = {"seed": seed, "mse": evaluate(model, data.test, cfg.n_points), "fit_s": fit_s}
+    if kind in GOAL_KINDS:
+        params = dict(goals or {})
+        out["goals"] = goal_metrics.measure(model, data, cfg.n_points, **params)
+        if isinstance(model, DeepProMPModel):
+            abl = goal_metrics.AblatedDeepProMP(model)
+            out["ablation"] = {"mse": evaluate(abl, data.test, cfg.n_points),
+                               "goals": goal_metrics.measure(abl, data, cfg.n_points, **params)}
+    out["eval_s"] = time.perf_counter() - t0 - fit_s
+    return out
 
 
-MODEL_CLASSES_BY_KIND = {cls.kind: cls for cls in MODEL_CLASSES}
+MODEL_CLASSES_BY_KIND = {**{cls.kind: cls for cls in MODEL_CLASSES}, **{k: v[0] for k, v in VARIANTS.items()}}
 
 
-def task_units(task: TaskData, base: TrainConfig, scale: Scale, kinds: Sequence[str] | None = None) -> list[Unit]:
-    """The units of one task, in table order (model classes × seeds); each unit's ``parts`` hold what
-    determines its result: the training config as :func:`common.train_config` builds it, the scale's
-    steps, the data (sizes and :func:`common.dataset_digest`), the digest of :data:`SOURCES` and the
-    torch / numpy versions."""
+def goal_params(scale: Scale) -> dict:
+    """The parameters of :func:`goal_metrics.measure` at ``scale`` (part of every unit's key)."""
+    return {"n_sets": scale.goal_sets, "n_samples": scale.goal_samples}
+
+
+def task_units(task: TaskData, base: TrainConfig, scale: Scale, kinds: Sequence[str] | None = None,
+               variants: Sequence[str] = (), seeds: Sequence[int] | None = None,
+               steps: tuple[int, int] | None = None) -> list[Unit]:
+    """The units of one task, in table order (model classes, then ``variants`` of :data:`VARIANTS`, ×
+    ``seeds``, default ``range(scale.recon_seeds)``; ``kinds``: only those; ``steps``: (updates,
+    validation period) instead of the scale's ``recon_steps``, ``recon_val_every``); each unit's
+    ``parts`` hold what determines its result: the training config as :func:`common.train_config`
+    builds it, the scale's steps, the data (sizes and :func:`common.dataset_digest`), the goals'
+    parameters, the digest of :data:`SOURCES` and the torch / numpy versions."""
+    bad = sorted(set(variants) - set(VARIANTS))
+    if bad:
+        raise ValueError(f"unknown variants {bad}; expected names from {sorted(VARIANTS)}")
     data = {"sizes": [len(task.train), len(task.val), len(task.test)],
             "digest": common.dataset_digest([task.train, task.val, task.test])}
     fixed = {"experiment": "reconstruction", "task": task.name, "data": data,
              "scale": {"recon_steps": scale.recon_steps, "recon_val_every": scale.recon_val_every},
-             "n_via_extra": N_VIA_EXTRA, **common.code_parts(SOURCES)}
+             "n_via_extra": N_VIA_EXTRA, "goals": goal_params(scale), **common.code_parts(SOURCES)}
     units = []
-    for cls in MODEL_CLASSES:
-        if kinds and cls.kind not in kinds:
+    for kind in [c.kind for c in MODEL_CLASSES] + list(variants):
+        if kinds and kind not in kinds:
             continue
-        for seed in range(scale.recon_seeds):
-            cfg = common.train_config(base, scale.recon_steps, scale.recon_val_every, seed, task.name)
-            parts = {**fixed, "kind": cls.kind, "seed": seed, "train_config": dataclasses.asdict(cfg)}
-            cost = 0.01 if cls is ProMPModel else 1.0 + (task.train.image_shape is not None)
-            units.append(Unit(f"{task.name}__{cls.kind}__s{seed}", parts, (task.name, cls.kind, seed, cfg), cost))
+        for seed in (range(scale.recon_seeds) if seeds is None else seeds):
+            cfg = common.train_config(base, *(steps or (scale.recon_steps, scale.recon_val_every)), int(seed),
+                                      task.name)
+            if kind in VARIANTS:
+                cfg = dataclasses.replace(cfg, **VARIANTS[kind][1])
+            parts = {**fixed, "kind": kind, "seed": int(seed), "train_config": dataclasses.asdict(cfg)}
+            cost = 0.01 if MODEL_CLASSES_BY_KIND[kind] is ProMPModel else 1.0 + (task.train.image_shape is not None)
+            units.append(Unit(f"{task.name}__{kind}__s{seed}", parts,
+                              (task.name, kind, int(seed), cfg, goal_params(scale)), cost))
     return units
 
 
@@ -115,8 +156,13 @@ def run_tasks(tasks: Sequence[TaskData], base: TrainConfig, scale: Scale, kinds:
     """Train and evaluate every model on every task, unit by unit (:func:`fit_unit`): units found in
     ``cache`` are read, the others computed (``jobs`` worker processes) and stored. Returns ({task name:
     :func:`task_result`}, what was reused / computed)."""
-    units = [u for t in tasks for u in task_units(t, base, scale, kinds)]
+    return run_task_units(tasks, [u for t in tasks for u in task_units(t, base, scale, kinds)], log, cache, jobs)
 
+
+def run_task_units(tasks: Sequence[TaskData], units: Sequence[Unit], log: Callable[[str], None] = print,
+                   cache: UnitCache | None = None, jobs: int = 1) -> tuple[dict[str, dict], UnitReport]:
+    """The ``units`` (of :func:`task_units` on ``tasks``) read from ``cache`` or computed (``jobs``
+    worker processes) and stored, as :func:`run_tasks` returns them."""
     def show(u: Unit, r: dict, reused: bool, wall_s: float) -> None:
         task, kind, seed = u.args[:3]
         log(f"  {task:16s} {kind:15s} seed {seed}  fit {r['fit_s']:6.1f} s  "
@@ -126,7 +172,7 @@ def run_tasks(tasks: Sequence[TaskData], base: TrainConfig, scale: Scale, kinds:
     runs: dict[str, dict[str, list]] = {t.name: {} for t in tasks}
     for u, r in zip(units, results):
         runs[u.args[0]].setdefault(u.args[1], []).append(r)
-    return {t.name: task_result(t, runs[t.name]) for t in tasks}, report
+    return {t.name: task_result(t, runs[t.name]) for t in tasks if runs[t.name]}, report
 
 
 def run_task(task: TaskData, base: TrainConfig, scale: Scale, kinds: Sequence[str] | None = None,

@@ -16,6 +16,9 @@ names):
 ``rhythmic``        learned cyclic motion vs the demonstration, continuity at the seam
 ``small_data``      ~30 demos of a 7-joint task: DeepProMP (± refinement) vs ProMP
 ``bimodal``         bimodal sine: 3 / many / conflicting via-points
+``goals``           one table per goal of the model family (via-points vs ProMP, context vs every
+                    model, modes, samples, planner via-points, uncertainty, ablation and the paper's
+                    objective); reads and adds to the reconstruction experiment's units
 
 Each experiment writes PNG figures and ``<name>.md`` / ``<name>.json`` tables; ``timings.json`` has
 the wall time of each. One torch / BLAS thread per process (the machine is shared).
@@ -59,8 +62,10 @@ from experiments import common  # noqa: E402
 from experiments.common import SCALES, Scale, base_train_config  # noqa: E402
 from experiments.units import UnitCache, UnitReport  # noqa: E402
 
-EXPERIMENTS = ("reconstruction", "refinement", "rhythmic", "small_data", "bimodal")
-UNIT_EXPERIMENTS = ("reconstruction", "refinement", "small_data")  # those whose run() takes a unit cache and jobs
+EXPERIMENTS = ("reconstruction", "refinement", "rhythmic", "small_data", "bimodal", "goals")
+UNIT_EXPERIMENTS = ("reconstruction", "refinement", "small_data", "goals")  # those whose run() takes a unit cache and jobs
+#: experiments whose units are another's: goals reads and adds to the reconstruction units
+SHARED_UNITS = {"goals": "reconstruction"}
 
 
 def run_all(scale: Scale, out: pathlib.Path, only=None, tasks=None, config=None, log=print, jobs: int = 1,
@@ -88,8 +93,8 @@ def run_all(scale: Scale, out: pathlib.Path, only=None, tasks=None, config=None,
             mod = importlib.import_module(f"experiments.{name}")
             log(f"== {name} ({scale.name}) ==")
             t0 = time.perf_counter()
-            kw = dict(cache=cache.sub(name), jobs=jobs) if name in UNIT_EXPERIMENTS else {}
-            if name == "reconstruction":
+            kw = dict(cache=cache.sub(SHARED_UNITS.get(name, name)), jobs=jobs) if name in UNIT_EXPERIMENTS else {}
+            if name in ("reconstruction", "goals"):
                 results[name] = mod.run(scale, out, tasks=tasks, base=base_train_config(config), log=log, **kw)
             elif name == "small_data":
                 results[name] = mod.run(scale, out, train_config=base_train_config(config), log=log, **kw)
