@@ -27,6 +27,9 @@ from deepprompt_ros.training.basis import pca_basis
 
 torch.set_num_threads(1)
 REPO = pathlib.Path(__file__).resolve().parent.parent
+#: a trained Gen3 lite reach primitive with a plain latent (latent_linear 0, latent 16, context
+#: 'object' (3)): what models/gen3_lite_reach.safetensors was before auto_select chose a split latent
+PLAIN_REACH = REPO / "test" / "data" / "gen3_lite_reach_plain.safetensors"
 
 
 def demos(n=30, t=50, d=3, seed=0, y_mean=None):
@@ -259,7 +262,7 @@ def test_refine_returns_at_once_when_the_conditioning_meets_the_via_points():
 
 def test_refine_map_with_the_posterior_prior_counts_the_via_points_once():
     """The prior of MAP refinement is what the latent knows without the via-points (q_c): with no
-    context it is N(0, I), for a plain latent of the shipped model and for a split latent; with a
+    context it is N(0, I), for a plain latent of a trained reach model and for a split latent; with a
     context, the context's aggregation. The Laplace variance of a linear decoder is then exactly the
     Gaussian posterior's (the old double counting made it smaller)."""
     prim, x, Y = split_model(rs=0.0, contexts=(("obj", 2),))
@@ -280,11 +283,11 @@ def test_refine_map_with_the_posterior_prior_counts_the_via_points_once():
     d2 = prim.refine_map(LatentGaussian(q_c.mean, q_c.var), xv, yv)  # a latent that records no q_c is the prior
     np.testing.assert_allclose(c.latent.mean, d2.latent.mean, atol=1e-8)
     assert not np.allclose(c.latent.mean, d.latent.mean, atol=1e-6)  # the context's prior does count
-    shipped = DeepProMP.from_checkpoint(REPO / "models" / "gen3_lite_reach.safetensors")
+    trained = DeepProMP.from_checkpoint(PLAIN_REACH)
     xs, ys = np.array([0.5]), np.array([[-0.2, -0.3, 1.4, 1.5, 1.3, 0.0]])
-    plain = shipped.condition(xs, ys)
-    e = shipped.refine_map(plain, xs, ys, prior="posterior", max_iterations=5)
-    f = shipped.refine_map(plain, xs, ys, prior="standard", max_iterations=5)
+    plain = trained.condition(xs, ys)
+    e = trained.refine_map(plain, xs, ys, prior="posterior", max_iterations=5)
+    f = trained.refine_map(plain, xs, ys, prior="standard", max_iterations=5)
     np.testing.assert_allclose(e.latent.mean, f.latent.mean, atol=1e-12)
 
 
@@ -308,9 +311,9 @@ def test_a_partial_via_point_on_the_shipped_model_leaves_the_free_joints_wider_t
 
 
 def test_a_plain_latent_gives_the_numbers_of_before():
-    """latent_linear 0: the shipped reach model conditions, decodes, samples and refines as before the
-    split existed (values recorded from that code)."""
-    p = DeepProMP.from_checkpoint(REPO / "models" / "gen3_lite_reach.safetensors")
+    """latent_linear 0: a trained plain-latent reach model conditions, decodes, samples and refines as
+    before the split existed (values recorded from that code)."""
+    p = DeepProMP.from_checkpoint(PLAIN_REACH)
     xv = np.array([0.0, 0.4, 1.0])
     yv = np.array([[0.0, -0.3, 1.2, 1.5, 1.2, 0.0], [-0.2, -0.3, 1.4, 1.5, 1.3, 0.0], [-0.5, 0.2, 1.7, 1.4, 1.0, 0.1]])
     lat = p.condition(xv, yv, via_weights=[1.0, 0.5, 2.0], contexts={"object": [0.1, -0.2, 0.05]})

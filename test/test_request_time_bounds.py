@@ -45,7 +45,9 @@ from deepprompt_ros.server.requests import (BlendRequest, ConditionRequest, Cont
 from deepprompt_ros.server.service import PrimitiveServerCore
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
-REACH = REPO / "models" / "gen3_lite_reach.safetensors"
+#: a trained Gen3 lite reach primitive with a plain latent (latent_linear 0, latent 16, context 'object' (3)):
+#: the plain-latent case beside the split model below
+REACH = REPO / "test" / "data" / "gen3_lite_reach_plain.safetensors"
 SPEC = load_robot("gen3_lite")
 HOME = np.asarray(SPEC.home, dtype=np.float64)
 #: the most work any accepted request without refinement may take (s of CPU): the shipped limits aim
