@@ -201,7 +201,8 @@ def goal3(results: dict, shipped: dict | None) -> tuple[str, dict]:
         for row, label in ROWS:
             st = {k: stat(res["runs"], row, lambda m, g, f=f: f(g)) for k, _, f in MODE_COLUMNS}
             data[row] = st
-            rows.append([label] + [_cell(st[k], pct=True) for k, _, _ in MODE_COLUMNS])
+            rows.append([label] + [(f"{round(st[k]['mean'] * st[k]['n'])} of {st[k]['n']} seeds" if st[k]["n"] else "—")
+                                   if k == "both" else _cell(st[k], pct=True) for k, _, _ in MODE_COLUMNS])
     if shipped is not None:
         data["shipped"] = shipped
         rows.append([f"shipped `{shipped['file']}` ({shipped['training']})"]
@@ -212,7 +213,7 @@ def goal3(results: dict, shipped: dict | None) -> tuple[str, dict]:
     md = (common.markdown_table(["model"] + [lab for _, lab, _ in MODE_COLUMNS], rows)
           + "\nFractions of 200 samples at x = 0.25 (+ mode y > 0.6, − mode "
             "y < −0.6). Ambiguous: y = 0 at x = 0, 0.5, 1; distinguishing: points of 10 held-out demonstrations; "
-            f"both modes present: each holds ≥ {goal_metrics.BOTH_MODES_MIN:.0%} of the samples (share of seeds).\n")
+            f"both modes present: each holds ≥ {goal_metrics.BOTH_MODES_MIN:.0%} of the samples.\n")
     return md, data
 
 
@@ -325,7 +326,8 @@ def goal7(tables: dict) -> str:
                                    "DeepProMP vs objective: paper"], out)
             + f"\nOf {len(out)} measures, DeepProMP beats its ablation by more than one standard error on "
               f"{counts['better']}, is within one standard error on {counts['within 1 SE']} and worse on "
-              f"{counts['worse']}: where it is not better, the number is the ablation's, not the trained network's. "
+              f"{counts['worse']}: where it is not better, the trained network adds nothing measurable to that number "
+              "(within) or makes it worse. "
               f"Against the paper's objective: better on {paper['better']}, within on {paper['within 1 SE']}, worse "
               f"on {paper['worse']}.\n")
 

@@ -105,9 +105,12 @@ def test_refinement_error_decreases_from_the_posterior(tiny_run):
         # the full budget never ends worse than the initialization
         assert c["mean"][-1] <= c["mean"][0] * (1 + 1e-9), key
     one = curves["N=1 posterior"]
-    assert one["mean"][-1] < one["mean"][1] < one["mean"][0]
+    # a posterior that misses the via-point is improved by the first iteration (one that meets it stays)
+    for s in one["per_set"]:
+        assert s[0] <= 1e-6 or s[1] < s[0], s
     assert one["fraction_within_tol"] == 1.0 and max(s[-1] for s in one["per_set"]) <= 1e-6
-    # 50 via-points × 6 joints = 300 equations for 16 latent dimensions: no exact fit
+    # 50 via-points × 6 joints = 300 equations, more than the shipped model's latent dimensions: no exact fit
+    assert 300 > DeepProMP.from_checkpoint(ROOT / "models" / "gen3_lite_reach.safetensors").latent_dim
     assert curves["N=50 posterior"]["fraction_within_tol"] == 0.0
 
 
