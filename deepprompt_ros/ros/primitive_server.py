@@ -355,6 +355,10 @@ def main(args=None) -> int:
     """Entry point of ``ros2 run deepprompt_ros primitive_server``; returns the exit code."""
     rclpy.init(args=args)
     node, code = None, 0
+    # One torch thread, like one OpenBLAS thread: the conditioning's small triangular solves
+    # (primitive/linear_conditioning.py) take tens of times longer with a second intra-op thread.
+    import torch
+    torch.set_num_threads(1)
     try:
         node = PrimitiveServer()
         n = realtime.freeze_startup_objects()  # no collection scans them again (see realtime.GcMonitor)
