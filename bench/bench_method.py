@@ -167,14 +167,17 @@ def main(argv=None) -> int:
          f"{via['model']['latent_linear']}); target 1.0"),
         ("  via_met_median_err_rad", srv["median_error"], f"median max via-point error; {len(srv['refused'])} "
          "requests refused"),
+        ("  via_met_share_other_refine", via["server_other_refine"]["share"],
+         f"the same requests with refine={via['server_other_refine']['refine']} (not the server's default)"),
+        ("  via_met_other_refine_median_err_rad", via["server_other_refine"]["median_error"], "its median max error"),
         ("promp_via_met_share", pro["share"], f"ProMP on the same sets ({via['promp_label']}, fitted on the model's "
          f"{via['n_train_demos']} training demos)"),
         ("  promp_via_met_median_err_rad", pro["median_error"], "median max via-point error"),
         ("  wall_s", wall, "this benchmark, 2 worker processes for the trainings"),
     ]
-    print(f"{'metric':30s} {'value':>12s}  what produced it")
+    print(f"{'metric':38s} {'value':>12s}  what produced it")
     for name, val, note in rows:
-        print(f"{name:30s} {val:12.4g}  {note}")
+        print(f"{name:38s} {val:12.4g}  {note}")
     last = ("small_data_ratio", "context_ratio", "bimodal_on_mode", "via_met_share", "promp_via_met_share")
     print(" ".join(f"{n}={v:.6g}" for n, v, _ in rows if n in last))
     return 0

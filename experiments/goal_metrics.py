@@ -303,15 +303,15 @@ def via_met(model: MovementPrimitiveModel, sets: Sequence[Mapping], tol: float =
 
 
 def server_via_met(model_path, robot: str, sets: Sequence[Mapping], tol: float = MET_TOL,
-                   primitive: str = "primitive") -> dict:
-    """Goal 5 through the primitive server's default Condition path
+                   primitive: str = "primitive", refine: bool | None = None) -> dict:
+    """Goal 5 through the primitive server's Condition path
     (:meth:`deepprompt_ros.server.service.PrimitiveServerCore.condition` with the request's default
-    ``refine``, the server's default configuration and ``robot``'s limits) on the model file
-    ``model_path``: each set as one request (its via-points and contexts). A set is met when the
-    request succeeds and the mean of the stored handle, decoded here at the via-points, passes each
-    within ``tol``. Returns ``share``, ``n``, ``errors`` (inf for a refused request), ``refused``
-    (their messages), ``reported_agree`` (the server's reported error equals the one measured here),
-    ``refine`` (the default used)."""
+    ``refine`` unless ``refine`` is given, the server's default configuration and ``robot``'s limits)
+    on the model file ``model_path``: each set as one request (its via-points and contexts). A set is
+    met when the mean of the stored handle, decoded here at the via-points, passes each within ``tol``
+    (a request refused, or answered REFINEMENT_UNREACHABLE, is not met). Returns ``share``, ``n``,
+    ``errors`` (inf for a refused request), ``refused`` (their messages), ``reported_agree`` (the
+    server's reported error equals the one measured here), ``refine`` (the value used)."""
     import pathlib
 
     from deepprompt_ros.common.results import Code, RequestError
@@ -325,30 +325,29 @@ def server_via_met(model_path, robot: str, sets: Sequence[Mapping], tol: float =
     cfg = ServerConfig()
     loaded = load_primitive(PrimitiveEntry(primitive, str(model_path)), spec.joint_names, pathlib.Path)
     core = PrimitiveServerCore({primitive: loaded}, cfg, robot_limits(spec, cfg))
-    errs, refused, agree = [], [], []
+    refine = ConditionRequest(primitive).refine if refine is None else bool(refine)
+    errs, success, refused, agree = [], [], [], []
     for s in sets:
         vps = [ViaPointIn(float(a), np.asarray(b, dtype=np.float64), np.zeros(0, dtype=bool))
                for a, b in zip(s["x"], s["y"])]
         ctx = [ContextIn(k, np.asarray(v, dtype=np.float64).reshape(-1)) for k, v in s["contexts"].items()
                if k in loaded.model.context_dims]
         try:
-            res = core.condition(ConditionRequest(primitive, vps, ctx))
+            res = core.condition(ConditionRequest(primitive, vps, ctx, refine=refine))
         except RequestError as exc:
             errs.append(float("inf"))
+            success.append(False)
             refused.append(str(exc))
-            continue
-        if res.code != Code.SUCCESS:
-            errs.append(float("inf"))
-            refused.append(res.message)
             continue
         lat = core.handles.get(res.handle).latent
         e = float(np.abs(loaded.model.mean_trajectory(lat, s["x"]) - s["y"]).max())
         errs.append(e)
+        success.append(res.code == Code.SUCCESS)
         agree.append(abs(e - res.refine_max_error) <= 1e-9 + 1e-6 * e)
     errs = np.asarray(errs)
-    return {"share": float(np.mean(errs <= tol)), "n": len(errs), "errors": errs.tolist(),
+    return {"share": float(np.mean((errs <= tol) & np.asarray(success))), "n": len(errs), "errors": errs.tolist(),
             "median_error": float(np.median(errs)), "refused": refused, "reported_agree": bool(all(agree)),
-            "refine": ConditionRequest(primitive).refine}
+            "refine": refine}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -438,9 +437,10 @@ def shipped_reach_via_met(root, n_sets: int, seed: int = 0, n_contexts: int = 20
     ``gen3_lite_reach`` of the seed its metadata records), within the Gen3 lite's limits, each with
     the object of one of ``n_contexts`` other demonstrations (seed ``context_seed``);
 
-    ``server``  :func:`server_via_met`, the server's default Condition path on the model file
-    ``promp``   :func:`via_met` of ProMP (:class:`ProMPModel` defaults, its automatic selection)
-                fitted on the same training demonstrations
+    ``server``               :func:`server_via_met`, the server's default Condition path on the model file
+    ``server_other_refine``  the same requests with the other value of ``refine``
+    ``promp``                :func:`via_met` of ProMP (:class:`ProMPModel` defaults, its automatic
+                             selection) fitted on the same training demonstrations
 
     and ``model`` (the file's training facts) and ``promp_label``."""
     import pathlib
@@ -458,7 +458,10 @@ def shipped_reach_via_met(root, n_sets: int, seed: int = 0, n_contexts: int = 20
     sets = planner_via_sets(train, n_sets, seed, lower, upper, contexts_from=others)
     promp = ProMPModel(log=lambda s: None).fit(train, TrainConfig(seed=int(tc.get("seed", 0))))
     sel = meta.get("selection", {}).get("linear_part", {})
-    return {"server": server_via_met(path, "gen3_lite", sets, primitive="reach"), "promp": via_met(promp, sets),
+    default = server_default_refine()
+    return {"server": server_via_met(path, "gen3_lite", sets, primitive="reach"),
+            "server_other_refine": server_via_met(path, "gen3_lite", sets, primitive="reach", refine=not default),
+            "promp": via_met(promp, sets),
             "promp_label": model_label(promp),
             "model": {"file": SHIPPED_REACH, "dataset": meta.get("provenance", {}).get("dataset"),
                       "steps": tc.get("steps"), "objective": tc.get("objective"),
