@@ -28,7 +28,7 @@ from deepprompt_ros.training.basis import pca_basis
 torch.set_num_threads(1)
 REPO = pathlib.Path(__file__).resolve().parent.parent
 #: a trained Gen3 lite reach primitive with a plain latent (latent_linear 0, latent 16, context
-#: 'object' (3)): what models/gen3_lite_reach.safetensors was before auto_select chose a split latent
+#: 'object' (3)), trained with auto_select off
 PLAIN_REACH = REPO / "test" / "data" / "gen3_lite_reach_plain.safetensors"
 
 
@@ -264,7 +264,7 @@ def test_refine_map_with_the_posterior_prior_counts_the_via_points_once():
     """The prior of MAP refinement is what the latent knows without the via-points (q_c): with no
     context it is N(0, I), for a plain latent of a trained reach model and for a split latent; with a
     context, the context's aggregation. The Laplace variance of a linear decoder is then exactly the
-    Gaussian posterior's (the old double counting made it smaller)."""
+    Gaussian posterior's (counting the via-points twice would make it smaller)."""
     prim, x, Y = split_model(rs=0.0, contexts=(("obj", 2),))
     xv, yv = x[[10, 30]], Y[5, [10, 30]]
     lat = prim.condition(xv, yv)
@@ -310,9 +310,9 @@ def test_a_partial_via_point_on_the_shipped_model_leaves_the_free_joints_wider_t
         assert sd_part > 1.05 * sd_full and sd_part <= sd_none, (sd_part, sd_full, sd_none)
 
 
-def test_a_plain_latent_gives_the_numbers_of_before():
-    """latent_linear 0: a trained plain-latent reach model conditions, decodes, samples and refines as
-    before the split existed (values recorded from that code)."""
+def test_a_plain_latent_gives_its_recorded_numbers():
+    """latent_linear 0: a trained plain-latent reach model conditions, decodes, samples and refines to
+    the recorded values (the aggregation of every element, paper Eq. 1 and 3)."""
     p = DeepProMP.from_checkpoint(PLAIN_REACH)
     xv = np.array([0.0, 0.4, 1.0])
     yv = np.array([[0.0, -0.3, 1.2, 1.5, 1.2, 0.0], [-0.2, -0.3, 1.4, 1.5, 1.3, 0.0], [-0.5, 0.2, 1.7, 1.4, 1.0, 0.1]])

@@ -172,3 +172,12 @@ def test_architecture_parameters_are_declared_once_in_the_model_config():
             make()
     with pytest.raises(ValueError, match=r"sigma_y = 0.0 normalized: expected a value in \(0, inf\)"):
         ConcatNetConfig("cnmp", 1, sigma_y=0.0)
+
+
+def test_auto_select_refuses_a_grid_too_short_for_its_smallest_basis():
+    """The automatic selection tries at least 10 basis functions per joint, which need 20 phases: a
+    shorter n_points is refused naming both keys and the way out, before any data is read."""
+    from deepprompt_ros.common.params import ConfigError
+    with pytest.raises(ConfigError, match=r"n_points = 10 with auto_select.*n_points >= 20.*auto_select: false"):
+        TrainConfig(n_points=10)
+    assert TrainConfig(n_points=10, auto_select=False, max_via_points=5).n_points == 10

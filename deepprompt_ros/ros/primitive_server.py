@@ -90,7 +90,7 @@ RESULT_TIMEOUT = 60
 
 #: QoS of the five services and of the Execute action's goal, cancel and result services: reliable,
 #: keep-last 100 instead of rmw's 10, because a keep-last reader drops the oldest unanswered requests
-#: of a burst (of 80 Condition requests sent at once, 10 to 20 were answered with depth 10).
+#: of a burst larger than its depth without a trace.
 SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.VOLATILE)
 

@@ -13,7 +13,7 @@ import torch
 from deepprompt_ros.data.demo_dataset import DemoDataset
 from deepprompt_ros.model.network import DeepProMPNet
 from deepprompt_ros.model.phase import phase_basis
-from deepprompt_ros.training.config import BASIS_COV_REG_UNITS
+from deepprompt_ros.training.config import AUTO_DECODER_BASIS, BASIS_COV_REG_UNITS
 from deepprompt_ros.training.tensors import TensorData, fit_normalization
 
 __all__ = ["pca_basis", "init_basis_pca", "linear_map_condition", "fold_assignment", "cv_via_sets", "CV_CONDITIONINGS",
@@ -152,19 +152,18 @@ def cv_score(errors: np.ndarray) -> tuple[float, tuple[float, float, float]]:
 
 
 #: The grids of :func:`cv_basis_hyperparameters` (``TrainConfig.auto_select``): basis functions per
-#: joint n_b, linear latent sizes k_l (each n_b also tries k_l = n_b·d, the whole weight space, where
+#: joint n_b (``training.config.AUTO_DECODER_BASIS``, which the configuration's checks read), linear latent sizes k_l (each n_b also tries k_l = n_b·d, the whole weight space, where
 #: the linear part holds a full ProMP), PPCA regularizers λ (relative, :func:`pca_basis`) in both units,
 #: and via-point noises (normalized joint units; ProMP's cross-validation uses the same). λ > 0 and
 #: k_l >= ``reach_via_points`` · d keep a planner's via-points reachable: held-out demonstrations lie
 #: near the span of the others, so the cross-validation alone would accept a linear block that can
 #: move only within that span (λ = 0) or in fewer directions than the via-points constrain.
-AUTO_DECODER_BASIS = (10, 15, 20, 30)
-#: The reference form of the linear part: ProMP's (``ProMPModel``'s 20 RBFs per joint, λ in rad, the
-#: whole weight space as latent) — the default the cross-validation departs from only on evidence.
-PROMP_FORM = (20, "raw")
 AUTO_LATENT_LINEAR = (8, 16, 32, 64)
 AUTO_COV_REGS = (1e-3, 0.01, 0.03, 0.1, 0.3, 1.0)
 CV_VIA_NOISES = (1e-4, 1e-3, 1e-2, 3e-2, 0.1)
+#: The reference form of the linear part: ProMP's (``ProMPModel``'s 20 RBFs per joint, λ in rad, the
+#: whole weight space as latent) — the default the cross-validation departs from only on evidence.
+PROMP_FORM = (20, "raw")
 
 
 def cv_basis_hyperparameters(ds: DemoDataset, n_points: int, decoder_bases: Sequence[int] = AUTO_DECODER_BASIS,

@@ -54,7 +54,11 @@ def main(argv=None) -> int:
     print(f"training on {len(ds)} demonstrations from {ds.source}: joints {list(ds.joint_names)}, "
           f"phase {ds.phase_type}, contexts {ds.context_dims or 'none'}, images {ds.image_shape or 'none'}")
     info = {}
-    _, _, hist = train(ds, cfg, out_path=args.out, info=info)
+    try:
+        _, _, hist = train(ds, cfg, out_path=args.out, info=info)
+    except (ValueError, DatasetError) as exc:  # data the configuration cannot train on
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     best = min(h["val"]["mean"] for h in hist)
     print(f"best validation MSE {best:.3e} rad²; checkpoint written to {pathlib.Path(args.out).resolve()}")
     trained = info["train_config"]

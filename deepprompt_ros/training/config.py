@@ -21,6 +21,8 @@ OBJECTIVES = ("paper", "np")
 CONSISTENCY_ENCODER = ("none", "coverage", "all")
 BASIS_INITS = ("random", "pca")
 BASIS_COV_REG_UNITS = ("normalized", "raw")
+#: basis functions per joint the automatic selection tries (training/basis.cv_basis_hyperparameters)
+AUTO_DECODER_BASIS = (10, 15, 20, 30)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -125,6 +127,10 @@ class TrainConfig:
             *latent_linear_errors(c.latent_linear, c.latent_dim, c.decoder_basis, n_joints=c.latent_linear),
             "" if c.residual_folds != 1 else
             "residual_folds = 1: expected 0 (the validation demos) or >= 2 folds",
+            "" if not c.auto_select or c.n_points >= 2 * min(AUTO_DECODER_BASIS) else
+            f"n_points = {c.n_points!r} with auto_select: the selection's smallest basis ({min(AUTO_DECODER_BASIS)} "
+            f"functions per joint) needs n_points >= {2 * min(AUTO_DECODER_BASIS)}; expected a larger n_points, or "
+            "auto_select: false with decoder_basis set by hand",
             "" if c.max_via_points <= c.n_points else
             f"max_via_points = {c.max_via_points!r}: expected at most n_points = {c.n_points}",
             "" if c.p_empty == 1.0 or c.p_via_points > 0 or c.p_context > 0 else
