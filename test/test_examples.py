@@ -42,10 +42,10 @@ def test_readme_python_example_meets_the_via_point(example):
     assert match, printed
     before, after, _ = float(match[1]), float(match[2]), int(match[3])
     # the via-point is 0.05 rad from the context-only mean on joint_1: the exact conditioning of the
-    # shipped model's linear latent block leaves less than 1e-4 rad of it (its via-point noise),
-    # refinement must meet it to 1e-6 rad
+    # shipped model's linear latent block leaves a few microradians of it (its via-point noise is not
+    # zero), refinement must meet it to 1e-6 rad
     assert after < 1e-6, printed
-    assert after < before < 1e-4, printed
+    assert after < before < 1e-5, printed
 
 
 def test_readme_says_what_the_example_prints(example):

@@ -254,7 +254,9 @@ def test_goals_3_to_6_count_what_they_claim(tiny_run):
         assert amb["on_mode"] == pytest.approx(amb["on_pos"] + amb["on_neg"])
         assert amb["on_pos"] * 200 == pytest.approx(round(amb["on_pos"] * 200), abs=1e-6)
     shipped = g["tables"]["goal3"]["shipped"]
-    assert shipped["file"] == "models/bimodal_sine.safetensors" and 0 <= shipped["modes"]["ambiguous"]["on_mode"] <= 1
+    amb = shipped["modes"]["ambiguous"]
+    assert shipped["file"] == "models/bimodal_sine.safetensors"
+    assert amb["on_mode"] == pytest.approx(amb["on_pos"] + amb["on_neg"]) and amb["both"]  # both modes drawn
     # goal 4: N = 1, 5, 50 for every row; exact Gaussian conditioning (ProMP) scatters its samples at a
     # via-point by at most the stated noise
     for task, rows in g["tables"]["goal4"].items():
@@ -284,13 +286,19 @@ def test_goal_7_never_calls_an_ablation_beaten_by_identical_numbers(tiny_run):
     md = (out / "goals.md").read_text().split("## Goal 7")[1]
     rows = {tuple(c.strip() for c in ln.strip("|").split("|"))[:4] for ln in md.splitlines() if ln.startswith("| 1 |")}
     labels = {"start": "start only", "start_end": "start + end", "via_5": "5 via-points", "via_point": "whole trajectory"}
+    n_same = n_compared = 0
     for task, res in g["tasks"].items():
         for c, lab in labels.items():
             get = (lambda r, c=c: r["goals"]["subsets"][c]) if c.startswith("start") else (lambda r, c=c: r["mse"][c])
             same = _seed_values(res["runs"], "deepprompt", get) == _seed_values(res["runs"], "ablation", get)
             verdict = next(v for (goal, t, m, v) in rows if t == task and m == lab)
+            n_compared += 1
             if same:  # the residual was dropped: DeepProMP IS its ablation on via-points, never "better"
+                n_same += 1
                 assert verdict == "within 1 SE", (task, lab)
+    # the tiny run drops the residual on some task (its training demos are too few to justify it), so
+    # the rule above was exercised; every (task, subset) of the table was compared
+    assert n_same > 0 and n_compared == len(g["tasks"]) * len(labels), (n_same, n_compared)
 
 
 # ------------------------------------------------------------------------------------------------

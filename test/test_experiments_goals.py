@@ -119,7 +119,8 @@ def test_modes_and_samples_count_what_they_claim():
     one = st["1"]
     assert one["noise"] == pytest.approx(promp.via_noise * np.sqrt(np.mean(np.asarray(promp.norm.y_std) ** 2)))
     assert one["spread"] <= 1.1 * one["noise"] and one["mean_error"] < one["spread"]
-    assert one["sample_mean_error"] >= 0 and np.isfinite(one["sample_mean_error"])
+    # the mean of 200 samples is within a few standard errors (spread / √200) of the conditioned mean
+    assert one["sample_mean_error"] <= one["mean_error"] + 4 * one["spread"] / np.sqrt(200)
 
 
 def test_subset_conditionings_use_the_start_and_the_end(reach):
