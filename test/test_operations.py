@@ -105,9 +105,10 @@ def test_refinement_meets_reachable_via_points_within_1e6(plain_reach):
     assert met >= 6, met
 
 
-def test_shipped_reach_meets_reachable_via_points_by_its_exact_conditioning(reach):
-    # the shipped model's latent has a linear block (chosen by auto_select): the via-point sets of the
-    # test above are met by the exact conditioning of that block, before any refinement
+def test_a_trained_split_reach_model_meets_reachable_via_points_by_its_exact_conditioning():
+    # a reach model trained with auto_select (test/data: its latent has a linear block): the via-point
+    # sets of the test above are met by the exact conditioning of that block, before any refinement
+    reach = DeepProMP.from_checkpoint(pathlib.Path(__file__).resolve().parent / "data" / "gen3_lite_reach_split.safetensors")
     rng = np.random.default_rng(0)
     assert reach.cfg.latent_linear > 0
     for trial in range(8):
