@@ -26,7 +26,10 @@ experiments-quick: setup
 run: setup
 	$(PY) -m deepprompt_ros.run_main
 
-# Reproduce the shipped primitives in models/ (seeded: the same command gives the same file contents).
+# Train the shipped primitives in models/ (seeded: the same command gives the same file contents).
+# train-shake gives models/wam_shake.safetensors; the reach and sine files were written by an earlier
+# version of the training's subset sampling, so train-reach and train-sine give other weights of the
+# same configurations.
 TRAIN := $(PY) -m deepprompt_ros.training.cli
 models: train-sine train-reach train-shake
 train-sine: setup
