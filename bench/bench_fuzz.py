@@ -754,17 +754,6 @@ def _alive(pid: int) -> bool:
     return state not in ("Z", "X")
 
 
-def _stop_all(procs) -> None:
-    for p in procs:
-        if p.running():
-            try:
-                os.killpg(p.pid, signal.SIGINT)
-            except ProcessLookupError:
-                pass
-    for p in procs:
-        p.stop()
-
-
 def report(records, fig: dict, problems: list[str], header: str) -> None:
     """The table of outcomes per kind with the answer times (p50 and longest over the answered requests;
     a goal's: to its acceptance), the codes, the slowest answers, the examples of every bad outcome,
@@ -886,7 +875,7 @@ def main(argv=None) -> int:
                 problems += final_checks(c, ac, home)
             ac.destroy()
     finally:
-        _stop_all(procs)
+        NodeProcess.stop_all(procs)
     fig = figures(records, len(problems), wall)
     header = (f"primitive_server fuzzing ({'quick' if args.quick else 'full'}, seed {args.seed}, {n_clients} clients, "
               f"timeout {args.timeout:g} s, load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs, total "

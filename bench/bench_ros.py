@@ -829,19 +829,7 @@ def measure(args, env, tmp: pathlib.Path, prim_file: pathlib.Path, spec, limits,
     finally:
         if orch is not None:
             orch.close()
-        _stop_all(mine)
-
-
-def _stop_all(procs) -> None:
-    """SIGINT every running process of ``procs`` at once, then wait for each (SIGKILL after 5 s)."""
-    for p in procs:
-        if p.running():
-            try:
-                os.killpg(p.pid, signal.SIGINT)
-            except ProcessLookupError:
-                pass
-    for p in procs:
-        p.stop()
+        NodeProcess.stop_all(mine)
 
 
 def main(argv=None) -> int:
@@ -909,7 +897,7 @@ def main(argv=None) -> int:
         metrics = measure(args, env, tmp, prim_file, spec, limits, True, procs)
         plain = measure(args, env, tmp, prim_file, spec, limits, False, procs)
     finally:
-        _stop_all(procs)
+        NodeProcess.stop_all(procs)
     metrics.update({f"{k}_plain": v for k, v in plain.items()})
     for k in COMPARED:  # fast path / plain rclpy: < 1 where the fast path is faster
         a, b = metrics[k], plain[k]

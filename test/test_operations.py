@@ -81,19 +81,24 @@ def test_latent_variance_shrinks_as_via_points_are_added(sine):
 
 
 # ------------------------------------------------------------------ refinement (paper appendix)
+def reachable_sets(model, n_sets=8, seed=0):
+    """(phases (n,), positions (n, d)) of 1 or 2 via-points decoded from a random latent: reachable by
+    construction."""
+    rng = np.random.default_rng(seed)
+    for trial in range(n_sets):
+        z_true = rng.standard_normal(model.latent_dim)
+        xv = np.sort(rng.uniform(0.05, 0.95, 1 + trial % 2))
+        yield xv, model.decode(z_true, xv)
+
+
 def test_refinement_meets_reachable_via_points_within_1e6(plain_reach):
     # Via-point sets with no more equations (points × joints) than latent dimensions, built from
     # a decoded latent so that they are reachable by construction. Refinement is a local method
     # on a piecewise-linear decoder: it meets the large majority (measured in make bench), and a
     # miss is always reported (reachable=False with its residual), never silent.
     reach = plain_reach
-    rng = np.random.default_rng(0)
     met = 0
-    for trial in range(8):
-        z_true = rng.standard_normal(reach.latent_dim)
-        n = 1 + trial % 2
-        xv = np.sort(rng.uniform(0.05, 0.95, n))
-        yv = reach.decode(z_true, xv)
+    for xv, yv in reachable_sets(reach):
         post = reach.condition(xv, yv)
         before = np.abs(reach.mean_trajectory(post, xv) - yv).max()
         res = reach.refine(post, xv, yv, max_iterations=200, tol=1e-6)
@@ -109,13 +114,8 @@ def test_a_trained_split_reach_model_meets_reachable_via_points_by_its_exact_con
     # a reach model trained with auto_select (test/data: its latent has a linear block): the via-point
     # sets of the test above are met by the exact conditioning of that block, before any refinement
     reach = DeepProMP.from_checkpoint(pathlib.Path(__file__).resolve().parent / "data" / "gen3_lite_reach_split.safetensors")
-    rng = np.random.default_rng(0)
     assert reach.cfg.latent_linear > 0
-    for trial in range(8):
-        z_true = rng.standard_normal(reach.latent_dim)
-        n = 1 + trial % 2
-        xv = np.sort(rng.uniform(0.05, 0.95, n))
-        yv = reach.decode(z_true, xv)
+    for trial, (xv, yv) in enumerate(reachable_sets(reach)):
         post = reach.condition(xv, yv)
         assert np.abs(reach.mean_trajectory(post, xv) - yv).max() <= 1e-6, trial
         res = reach.refine(post, xv, yv, max_iterations=200, tol=1e-6)
