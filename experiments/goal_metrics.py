@@ -33,12 +33,13 @@ import numpy as np
 import torch
 
 from bench.plot_bimodal import fractions
-from deepprompt_ros.baselines.deep_promp_model import DeepProMPModel
+from deepprompt_ros.baselines.deep_promp_model import DeepProMPModel, planner_condition
 from deepprompt_ros.baselines.interface import MovementPrimitiveModel
 from deepprompt_ros.data.demo_dataset import DemoDataset
 from deepprompt_ros.data.synthetic import bimodal_sine
 from deepprompt_ros.model.network import DeepProMPNet
 from deepprompt_ros.primitive.deep_promp import DeepProMP
+from deepprompt_ros.primitive.latent import PLANNER_VIA_NOISE
 
 #: the tolerance of goal 5 (rad): a via-point is met when the executed mean passes it this closely
 MET_TOL = 1e-6
@@ -102,7 +103,7 @@ class AblatedDeepProMP(DeepProMPModel):
         if not has_via:
             return prim.prior()
         if prim.cfg.latent_linear > 0:
-            return prim.condition(inp.via_x, inp.via_y)
+            return planner_condition(prim, inp.via_x, inp.via_y)
         noise = prim.cfg.via_noise * np.asarray(prim.norm.y_std, dtype=np.float64)
         return prim.refine_map(prim.prior(), inp.via_x, inp.via_y, prior="standard", noise_std=noise).latent
 
@@ -182,10 +183,12 @@ def mode_shares(model: MovementPrimitiveModel, n_samples: int = 200, n_held: int
 
 def stated_noise(model: MovementPrimitiveModel) -> float:
     """The via-point standard deviation the model's conditioning states (rad, RMS over joints): a
-    DeepProMP's ``via_noise`` (normalized units) times each joint's normalization std; ProMP's the
+    DeepProMP's (split latent: the planner's :data:`PLANNER_VIA_NOISE`, else the model's ``via_noise``;
+    normalized units) times each joint's normalization std; ProMP's the
     same with its own ``via_noise``; NaN for models without one."""
     if isinstance(model, DeepProMPModel):
-        v, std = model.primitive.cfg.via_noise, model.primitive.norm.y_std
+        prim = model.primitive
+        v, std = PLANNER_VIA_NOISE if prim.exact_conditioning else prim.cfg.via_noise, prim.norm.y_std
     elif hasattr(model, "via_noise") and getattr(model, "norm", None) is not None:
         v, std = model.via_noise, model.norm.y_std
     else:
@@ -288,7 +291,7 @@ def server_path(model: MovementPrimitiveModel, cond, via_x, via_y):
 
 
 def via_met(model: MovementPrimitiveModel, sets: Sequence[Mapping], tol: float = MET_TOL) -> dict:
-    """Goal 5 for a model's own conditioning (DeepProMP: :meth:`DeepProMP.condition` and
+    """Goal 5 for a model's own conditioning (DeepProMP: :func:`planner_condition` and
     :func:`server_path`, the computation of the server's default Condition): each set of
     :func:`planner_via_sets` with its contexts (when the model takes them); ``share`` of the sets
     whose executed mean passes every via-point within ``tol``, ``errors`` the max error of each."""

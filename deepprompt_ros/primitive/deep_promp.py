@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import pathlib
+import time
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
@@ -32,7 +33,8 @@ from deepprompt_ros.model.network import DeepProMPNet
 from deepprompt_ros.primitive.blending import blend_gaussians
 from deepprompt_ros.primitive.inputs import check_images, check_phases, check_weights
 from deepprompt_ros.primitive.latent import LatentGaussian
-from deepprompt_ros.primitive.linear_conditioning import condition_split, linear_block_variance
+from deepprompt_ros.primitive.linear_conditioning import (SplitRefinement, condition_split, linear_block_variance,
+                                                          refine_split)
 from deepprompt_ros.primitive.numpy_net import NumpyNet
 from deepprompt_ros.primitive.refinement import RefinementResult, refine_exact, refine_map
 
@@ -94,6 +96,13 @@ class DeepProMP:
     @property
     def phase_type(self) -> str:
         return self.cfg.phase_type
+
+    @property
+    def exact_conditioning(self) -> bool:
+        """Whether via-points condition a linear latent block exactly (``latent_linear`` > 0): the
+        mean then meets reachable via-points by conditioning alone (:meth:`refine_linear` when a
+        smaller noise is needed)."""
+        return self._split
 
     @property
     def context_dims(self) -> dict[str, int]:
@@ -213,6 +222,33 @@ class DeepProMP:
         n_candidates : int
             Split latent: draws of z_nl besides the mean of its aggregation.
         """
+        noise = self.cfg.via_noise if via_noise is None else via_noise
+        if isinstance(noise, bool) or not (isinstance(noise, (int, float, np.floating, np.integer)) and np.isfinite(noise)
+                                            and noise > 0):
+            raise ValueError(f"via_noise = {via_noise!r}: expected a finite standard deviation > 0 (normalized joint "
+                             "units) or None (the model's own)")
+        if isinstance(n_candidates, bool) or not isinstance(n_candidates, (int, np.integer)) or n_candidates < 0:
+            raise ValueError(f"n_candidates = {n_candidates!r}: expected an integer >= 0")
+        with np.errstate(over="ignore", invalid="ignore"):
+            out = self._condition(via_x, via_y, via_weights, via_mask, contexts, context_weights, images,
+                                  image_weight, float(noise), int(n_candidates))
+        if not (np.isfinite(out.mean).all() and np.isfinite(out.var).all()):
+            # finite but huge inputs (e.g. 1e308) overflow in the normalization, the aggregation or the
+            # exact conditioning: refused with the values that caused it
+            vy = np.abs(np.asarray(via_y, dtype=np.float64)) if via_y is not None else np.zeros(1)
+            cv = [np.abs(np.asarray(c, dtype=np.float64)).max() for c in (contexts or {}).values()]
+            ws = [np.asarray(via_weights if via_weights is not None else 1.0, dtype=np.float64).max(),
+                  *(np.asarray(w, dtype=np.float64).max() for w in (context_weights or {}).values()), image_weight]
+            raise ValueError(
+                f"the via-points and contexts give primitive '{self.name}' a latent distribution with NaN or inf (an "
+                f"overflow): largest |via-point position| {float(vy.max()) if vy.size else 0.0:.3g} rad, largest "
+                f"|context value| {max(cv, default=0.0):.3g}, largest weight {max(ws):.3g}; expected joint positions "
+                "and context values of the size of the training data and weights of moderate size")
+        return out
+
+    def _condition(self, via_x, via_y, via_weights, via_mask, contexts, context_weights, images, image_weight,
+                   noise: float, n_candidates: int) -> LatentGaussian:
+        """:meth:`condition` after its checks of ``via_noise`` and ``n_candidates`` (may overflow)."""
         mus, vars_, ws = [], [], []
         if contexts:
             for name, c in contexts.items():
@@ -223,6 +259,7 @@ class DeepProMP:
             mu, var = self.encode_images(images)
             mus.append(mu), vars_.append(var)
             ws.append(check_weights([image_weight], 1, "images"))
+        n_c = len(mus)
         q_c = self.aggregate(np.concatenate(mus), np.concatenate(vars_), np.concatenate(ws)) if mus else self.prior()
         via = None
         if via_x is not None or via_y is not None:
@@ -237,25 +274,20 @@ class DeepProMP:
                 y_enc, w_enc = y, w
                 if not mask.all():
                     full = mask.all(1)
-                    base = self.condition(x[full], y[full], w[full], None, contexts, context_weights, images,
-                                          image_weight, via_noise, n_candidates)
+                    base = self._condition(x[full], y[full], w[full], None, contexts, context_weights, images,
+                                           image_weight, noise, n_candidates)
                     y_enc = np.where(mask, y, self.decode(base.mean, x))
                     w_enc = w * mask.sum(1) / self.n_joints
                 mu, var = self.encode_via_points(x, y_enc)
                 mus.append(mu), vars_.append(var), ws.append(w_enc)
         if not mus and via is None:
             return self.prior()
-        q_all = self.aggregate(np.concatenate(mus), np.concatenate(vars_), np.concatenate(ws)) if mus else q_c
+        # q_all differs from q_c only when via-point encodings were added after the contexts and images
+        q_all = self.aggregate(np.concatenate(mus), np.concatenate(vars_), np.concatenate(ws)) if len(mus) > n_c else q_c
         if not self._split or via is None or not ((via[2] > 0)[:, None] & via[3]).any():
             # no observed joint of a via-point of weight > 0: the aggregation is the distribution
             return LatentGaussian(q_all.mean, q_all.var, context_mean=q_c.mean, context_var=q_c.var)
-        noise = self.cfg.via_noise if via_noise is None else float(via_noise)
-        if not (np.isfinite(noise) and noise > 0):
-            raise ValueError(f"via_noise = {via_noise!r}: expected a finite standard deviation > 0 (normalized joint "
-                             "units)")
-        if int(n_candidates) != n_candidates or n_candidates < 0:
-            raise ValueError(f"n_candidates = {n_candidates!r}: expected an integer >= 0")
-        return condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, *via, noise, int(n_candidates))
+        return condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, *via, noise, n_candidates)
 
     @staticmethod
     def aggregate(mu: np.ndarray, var: np.ndarray, w: np.ndarray) -> LatentGaussian:
@@ -428,6 +460,37 @@ class DeepProMP:
                             sigma_iterations=sigma_iterations, max_restarts=max_restarts,
                             smoothing_schedule=smoothing_schedule, latent_bound=latent_bound,
                             time_budget=time_budget)
+
+    def refine_linear(self, latent: LatentGaussian, via_x, via_y, joint_mask=None, tol: float = 1e-6,
+                      max_iterations: int = 200, time_budget: float | None = None) -> SplitRefinement:
+        """Meet via-points with a split latent's mean by exact conditioning of its linear block alone
+        (:func:`deepprompt_ros.primitive.linear_conditioning.refine_split`: 0 iterations when met,
+        else z_lin conditioned again with the noise divided by 10 per iteration). Unlike
+        :meth:`refine` there is no gradient stage: the result is always a split latent, and
+        ``max_error`` > ``tol`` says the linear block cannot meet them (or the time budget ended).
+
+        Parameters
+        ----------
+        latent : LatentGaussian from :meth:`condition` of this (split) primitive
+        via_x : array, shape (n,); via_y : array, shape (n, d); joint_mask : (n, d) or (d,), optional
+        time_budget : float, optional, wall time (s) after which no further iteration starts
+        """
+        if latent.linear is None or latent.context_mean is None:
+            raise ValueError("refine_linear needs a latent of a split primitive (latent_linear > 0) from condition() "
+                             "with at least one via-point")
+        x = self.check_phases(via_x, "via-point phase")
+        y = self.check_positions(via_y, x.shape[0])
+        mask = self.check_mask(joint_mask, x.shape[0])
+        if not (np.isfinite(tol) and tol > 0):
+            raise ValueError(f"tol = {tol!r}: expected a finite tolerance > 0 (rad)")
+        if int(max_iterations) != max_iterations or max_iterations < 0:
+            raise ValueError(f"max_iterations = {max_iterations!r}: expected an integer >= 0")
+        deadline = float("inf")
+        if time_budget is not None:
+            if not (np.isfinite(time_budget) and time_budget > 0):
+                raise ValueError(f"time_budget = {time_budget!r}: expected seconds > 0 (or None: no limit)")
+            deadline = time.perf_counter() + time_budget
+        return refine_split(self._np, latent, x, y, mask, float(tol), int(max_iterations), deadline=deadline)
 
     def refine_map(self, latent: LatentGaussian, via_x, via_y, joint_mask=None, prior: str = "posterior",
                    noise_std=None, max_iterations: int = 50, tol: float = 1e-6,

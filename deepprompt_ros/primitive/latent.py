@@ -13,7 +13,14 @@ import dataclasses
 
 import numpy as np
 
-__all__ = ["LatentGaussian", "LinearBlock"]
+__all__ = ["LatentGaussian", "LinearBlock", "PLANNER_VIA_NOISE"]
+
+#: The standard deviation of a planner's via-point in the exact conditioning of a split latent
+#: (normalized joint units: rad / the joint's normalization std). A via-point a planner asks for is a
+#: hard constraint: at this noise the conditioning alone meets the reachable ones to about 1e-6 rad
+#: (:meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.refine_linear` conditions again with a
+#: smaller noise when it does not). The primitive server's default (parameter ``via_noise``).
+PLANNER_VIA_NOISE = 1e-7
 
 
 def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -50,6 +57,9 @@ class LinearBlock:
     form : {"observation", "information"}
     noise : float
         The via-point standard deviation used (normalized joint units, before the importance weights).
+    via_error : float
+        Max |mean − via-point| (joint units) of the ``mean`` latent over the observed joints of the
+        via-points it was conditioned on (of weight > 0).
     """
 
     scale: np.ndarray
@@ -59,6 +69,7 @@ class LinearBlock:
     design: np.ndarray | None
     form: str
     noise: float
+    via_error: float
 
     @property
     def k_lin(self) -> int:

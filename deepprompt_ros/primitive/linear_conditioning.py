@@ -165,26 +165,36 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
         h, sigma, r = np.zeros((0, k_l)), np.ones(0), np.zeros((candidates_nl.shape[0], 0))
     g = h * (s / sigma[:, None])  # whitened design
     d = (r - h @ m) / sigma  # whitened residuals of the candidates
-    nan = np.full(cfg.latent_dim, np.nan)
-    overflow = LatentGaussian(nan, nan, context_mean=context_mean, context_var=context_var)  # no distribution to give
-    if not (np.isfinite(g.sum()) and np.isfinite(d.sum())):
-        return overflow
+    if not np.isfinite(g.sum() + d.sum()):
+        return _overflow(cfg.latent_dim, context_mean, context_var)
     try:
         form, chol, u, loglik, qdiag = whitened_posterior(g, d)
     except np.linalg.LinAlgError as exc:  # I + GGᵀ is positive definite unless rounding breaks it
         raise ValueError(f"the exact conditioning of the linear latent block failed ({exc}) with via-point noise "
                          f"{noise:g}: expected via-points of the size of the training data and a noise of at least "
                          "about 1e-10 (normalized joint units)") from None
-    if not (np.isfinite(loglik.sum()) and np.isfinite(u.sum())):
-        return overflow
-    weights = np.exp(loglik - loglik.max())
-    weights /= weights.sum()
+    if not np.isfinite(loglik.sum() + u.sum()):
+        return _overflow(cfg.latent_dim, context_mean, context_var)
+    if loglik.shape[0] == 1:
+        weights, best = np.ones(1), 0
+    else:
+        weights = np.exp(loglik - loglik.max())
+        weights /= weights.sum()
+        best = int(np.argmax(loglik))
     cands = np.concatenate([m + u * s, candidates_nl], 1)  # (C, k)
+    # the best candidate's mean at the observed joints of the via-points: offset + H z_lin (joint units)
+    via_error = float(np.abs(r[best] - h @ cands[best, :k_l]).max()) if h.shape[0] else 0.0
     block = LinearBlock(scale=s, candidates=cands, weights=weights, chol=chol,
-                        design=g if form == "observation" else None, form=form, noise=float(noise))
-    best = int(np.argmax(loglik))
+                        design=g if form == "observation" else None, form=form, noise=float(noise),
+                        via_error=via_error)
     var = np.concatenate([s ** 2 * qdiag, all_var[k_l:]])
     return LatentGaussian(cands[best].copy(), var, linear=block, context_mean=context_mean, context_var=context_var)
+
+
+def _overflow(k: int, context_mean: np.ndarray, context_var: np.ndarray) -> LatentGaussian:
+    """The latent of a conditioning that overflowed (NaN mean and variance: no distribution to give)."""
+    nan = np.full(k, np.nan)
+    return LatentGaussian(nan, nan, context_mean=context_mean, context_var=context_var)
 
 
 def linear_block_variance(block: LinearBlock, jac: np.ndarray) -> np.ndarray:
@@ -225,10 +235,12 @@ def refine_split(net: "NumpyNet", latent: LatentGaussian, x: np.ndarray, y: np.n
     Else z_lin is conditioned again on these via-points (weight 1 each, constrained joints only),
     from the recorded prior q_c and with the latent's z_nl candidates, with the noise divided by
     ``factor`` per iteration (the error of a via-point the linear block can reach falls as the
-    noise squared) until the mean meets them, the error no longer halves (more constraints than the
-    block can meet), the noise falls below ``min_noise``, the factor cannot be computed,
-    ``max_iterations``, or ``deadline`` (a :func:`time.perf_counter` time) has passed before an
-    iteration. The best latent found is returned.
+    noise squared once the noise is below the scale of the block's weakest direction the via-points
+    need: it can stay level over several reductions first) until the mean meets them, the noise falls
+    below ``min_noise`` (more constraints than the block can meet), the factorization fails or
+    overflows, ``max_iterations``, or ``deadline`` (a :func:`time.perf_counter` time) has passed
+    before an iteration. The best latent found is returned; a latent replaces the best one only if
+    its error is lower by more than 10 %.
 
     Parameters
     ----------
@@ -253,7 +265,8 @@ def refine_split(net: "NumpyNet", latent: LatentGaussian, x: np.ndarray, y: np.n
             break
         noise /= factor
         if noise < min_noise:
-            reason = f"via-point noise below {min_noise:g} without meeting the via-points"
+            reason = (f"via-point noise below {min_noise:g} without meeting the via-points: the linear block cannot "
+                      "meet them")
             break
         it += 1
         try:
@@ -265,11 +278,12 @@ def refine_split(net: "NumpyNet", latent: LatentGaussian, x: np.ndarray, y: np.n
             reason = "the conditioning's factorization failed at a smaller noise"
             history.append(best_err)
             break
-        if not (np.isfinite(err) and err < 0.5 * best_err):
-            reason = "the error stopped falling with the noise: the linear block cannot meet these via-points"
+        if not np.isfinite(err):
+            reason = "the conditioning overflowed at a smaller noise"
             history.append(best_err)
             break
-        best, best_err = lat, err
+        if err < 0.9 * best_err:  # (a latent barely better than the last is not taken: it is no nearer)
+            best, best_err = lat, err
         history.append(best_err)
         if best_err <= tol:
             reason = f"met by exact conditioning of the linear block at via-point noise {noise:.3g}"

@@ -21,6 +21,7 @@ from deepprompt_ros.common import params
 from deepprompt_ros.common.params import param
 from deepprompt_ros.execution.limits import JointLimits
 from deepprompt_ros.execution.settings import LoopSettings
+from deepprompt_ros.primitive.latent import PLANNER_VIA_NOISE
 
 __all__ = ["ServerConfig", "PARAMETERS", "robot_limits"]
 
@@ -129,6 +130,12 @@ class ServerConfig(LoopSettings):
                                       "REFINEMENT_UNREACHABLE and a message saying the time budget ended it. The "
                                       "service thread answers one request at a time, so this bounds how long "
                                       "one Condition holds up the others.", min=0.01, max=600.0, unit="s")
+    via_noise: float = param(PLANNER_VIA_NOISE, "Standard deviation of a planner's via-point in the exact "
+                             "conditioning of a primitive with a linear latent block (latent_linear > 0), in units "
+                             "of each joint's normalization std (the demonstrations' spread): via-points are hard "
+                             "constraints, met to refine_tolerance by the conditioning (conditioned again with a "
+                             "smaller noise when not). 0 = the primitive's own noise from training. Primitives "
+                             "without a linear block do not use it.", min=0.0, max=1.0)
     refine_tolerance: float = param(1e-6, "Default refinement tolerance on the via-point error.",
                                     min=1e-12, max=1.0, unit="rad")
     max_cycles: int = param(100000, "Largest Execute.cycles accepted (rhythmic primitives).", min=1, max=10**9)

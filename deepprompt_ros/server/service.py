@@ -263,25 +263,16 @@ class PrimitiveServerCore:
             contexts[c.modality] = vals[None, :]
             cweights[c.modality] = [w]
 
-        # ---- aggregate (paper Eq. 1 / Eq. 3 with importance weights); an overflow is refused below,
-        # with the values that caused it, instead of a numpy warning without them in the node's log
+        # ---- aggregate (paper Eq. 1 / Eq. 3 with importance weights); a split latent's linear block is
+        # conditioned exactly with the planner's via-point noise (parameter via_noise); an overflow of
+        # finite but huge inputs is refused by the model with the values that caused it
+        exact = model.exact_conditioning
         try:
-            with np.errstate(over="ignore", invalid="ignore"):
-                latent = model.condition(vx if n else None, vy if n else None, vw if n else None,
-                                         vmask if n else None, contexts or None, cweights or None,
-                                         images, image_weight)
+            latent = model.condition(vx if n else None, vy if n else None, vw if n else None,
+                                     vmask if n else None, contexts or None, cweights or None,
+                                     images, image_weight, via_noise=(cfg.via_noise or None) if exact else None)
         except ValueError as exc:
             raise RequestError(Code.INVALID_REQUEST, str(exc)) from None
-        if not (np.all(np.isfinite(latent.mean)) and np.all(np.isfinite(latent.var))):
-            # finite but huge inputs (e.g. 1e308) overflow in the normalization or the aggregation
-            largest_ctx = max((float(np.abs(v).max()) for v in contexts.values()), default=0.0)
-            weights = [*vw[:n], *(w for ws in cweights.values() for w in ws), image_weight]
-            raise RequestError(Code.INVALID_REQUEST, (
-                f"the via-points and contexts give primitive '{prim.name}' a latent distribution with NaN or inf "
-                f"(an overflow): largest |via-point position| {float(np.abs(vy).max()) if n else 0.0:.3g} rad, "
-                f"largest |context value| {largest_ctx:.3g}, largest weight {max(weights):.3g}; expected joint "
-                "positions within the robot's joint ranges, context values of the size of the training data and "
-                "weights of moderate size"))
 
         # ---- error of the executed mean at the via-points, optional refinement (paper Eq. 5)
         active = vw > 0
@@ -293,6 +284,12 @@ class PrimitiveServerCore:
                                    time_budget=cfg.refine_time_budget)
                 latent, iterations, reason, out_of_time = res.latent, res.iterations, res.reason, res.out_of_time
                 max_err = res.max_error
+            elif exact:  # the planner's via-points met by exact conditioning alone (no gradient stage)
+                max_err = latent.linear.via_error  # of the active via-points' observed joints, as conditioned
+                if max_err > tol:
+                    lin = model.refine_linear(latent, xa, ya, ma, tol=tol, max_iterations=iters,
+                                              time_budget=cfg.refine_time_budget)
+                    latent, iterations, max_err = lin.latent, lin.iterations, lin.max_error
             else:
                 max_err = float(np.abs((model.decode(latent.mean, xa) - ya)[ma]).max())
         else:
@@ -317,6 +314,8 @@ class PrimitiveServerCore:
             code = Code.SUCCESS
             msg = (f"conditioned '{prim.name}' on {int(active.sum())} via-points and {len(req.contexts)} contexts"
                    + (f"; refined in {iterations} iterations" if req.refine and active.any() else "")
+                   + (f"; linear block conditioned again {iterations} times with a smaller via-point noise"
+                      if exact and iterations and not req.refine else "")
                    + f"; max via-point error {max_err:.3g} rad")
         return ConditionResult(code, msg, handle, expires, preview, max_err, iterations, reachable)
 

@@ -1,0 +1,125 @@
+"""The server's default Condition on a trained split-latent primitive meets a planner's via-points:
+exact conditioning of the linear block with the planner's via-point noise (ServerConfig.via_noise),
+conditioned again with a smaller noise when a via-point is still missed; honest reports when the block
+cannot meet them; overflowing or invalid conditioning arguments refused by the model itself."""
+import pathlib
+import sys
+import time
+
+import numpy as np
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from deepprompt_ros.baselines.deep_promp_model import DeepProMPModel, planner_condition  # noqa: E402
+from deepprompt_ros.common.results import Code  # noqa: E402
+from deepprompt_ros.data.builtin import gen3_lite_reach  # noqa: E402
+from deepprompt_ros.primitive.deep_promp import DeepProMP  # noqa: E402
+from deepprompt_ros.primitive.latent import PLANNER_VIA_NOISE  # noqa: E402
+from deepprompt_ros.robots.spec import load_robot  # noqa: E402
+from deepprompt_ros.server.config import ServerConfig, robot_limits  # noqa: E402
+from deepprompt_ros.server.primitives_file import PrimitiveEntry, load_primitive  # noqa: E402
+from deepprompt_ros.server.requests import ConditionRequest, ContextIn, ViaPointIn  # noqa: E402
+from deepprompt_ros.server.service import PrimitiveServerCore  # noqa: E402
+from experiments import goal_metrics as gm  # noqa: E402
+
+SPLIT = ROOT / "test" / "data" / "gen3_lite_reach_split.safetensors"
+PLAIN = ROOT / "test" / "data" / "gen3_lite_reach_plain.safetensors"
+SPEC = load_robot("gen3_lite")
+
+
+def core_for(path, **cfg_values):
+    cfg = ServerConfig(**cfg_values)
+    loaded = load_primitive(PrimitiveEntry("reach", str(path)), SPEC.joint_names, pathlib.Path)
+    return PrimitiveServerCore({"reach": loaded}, cfg, robot_limits(SPEC, cfg)), loaded.model
+
+
+@pytest.fixture(scope="module")
+def planner_sets():
+    """Goal 5's sets: 1-5 via-points, each joint uniform in the demos' range at that phase +-20 % of its
+    span, inside the joint limits, with the object of another demonstration."""
+    train = gen3_lite_reach(seed=0)
+    lower, upper = gm.joint_limits(train.joint_names)
+    return gm.planner_via_sets(train, 40, seed=3, lower=lower, upper=upper,
+                               contexts_from=gen3_lite_reach(seed=1001, n_demos=20))
+
+
+def request(s):
+    vps = [ViaPointIn(float(a), np.asarray(b), np.zeros(0, dtype=bool)) for a, b in zip(s["x"], s["y"])]
+    ctx = [ContextIn(k, np.asarray(v, dtype=np.float64).reshape(-1)) for k, v in s["contexts"].items()]
+    return ConditionRequest("reach", vps, ctx)
+
+
+def measured_error(core, model, res, s):
+    lat = core.handles.get(res.handle).latent
+    return float(np.abs(model.mean_trajectory(lat, s["x"]) - s["y"]).max())
+
+
+def test_the_default_condition_meets_every_planner_set_on_the_trained_split_model(planner_sets):
+    core, model = core_for(SPLIT)
+    assert model.exact_conditioning and ServerConfig().via_noise == PLANNER_VIA_NOISE
+    errors = []
+    for s in planner_sets:
+        res = core.condition(request(s))
+        assert res.code == Code.SUCCESS and res.reachable, res.message
+        e = measured_error(core, model, res, s)
+        assert abs(e - res.refine_max_error) <= 1e-12 + 1e-6 * e  # the report is the executed mean's error
+        errors.append(e)
+    assert max(errors) <= 1e-6, max(errors)
+
+
+def test_with_the_models_own_noise_the_linear_block_is_conditioned_again_until_met(planner_sets):
+    core, model = core_for(SPLIT, via_noise=0.0)  # the noise training chose (1e-4): misses by ~1e-3 rad
+    first = [float(np.abs(model.mean_trajectory(model.condition(s["x"], s["y"], contexts=s["contexts"]), s["x"])
+                          - s["y"]).max()) for s in planner_sets]
+    assert np.mean(np.array(first) > 1e-6) > 0.9  # what the re-conditioning has to close
+    iterations = []
+    for s in planner_sets:
+        res = core.condition(request(s))
+        assert res.code == Code.SUCCESS and res.reachable, res.message
+        assert measured_error(core, model, res, s) <= 1e-6
+        iterations.append(res.refine_iterations)
+    assert min(iterations) >= 1 and "conditioned again" in res.message
+
+
+def test_more_constraints_than_the_linear_block_has_are_reported_unmet_not_hidden():
+    core, model = core_for(SPLIT)
+    rng = np.random.default_rng(5)
+    x = np.sort(rng.choice(np.linspace(0, 1, 101), 40, replace=False))  # 240 values for a 32-D block
+    y = model.mean_trajectory(model.prior(), x) + rng.normal(0, 0.05, (40, 6))
+    vps = [ViaPointIn(float(a), b, np.zeros(0, dtype=bool)) for a, b in zip(x, y)]
+    t0 = time.perf_counter()
+    res = core.condition(ConditionRequest("reach", vps))
+    assert time.perf_counter() - t0 < ServerConfig().refine_time_budget + 1.0
+    assert res.code == Code.SUCCESS and not res.reachable and res.refine_max_error > 1e-3, res.message
+    lat = core.handles.get(res.handle).latent
+    assert abs(float(np.abs(model.mean_trajectory(lat, x) - y).max()) - res.refine_max_error) < 1e-9
+
+
+def test_planner_condition_is_the_servers_default_path(planner_sets):
+    core, model = core_for(SPLIT)
+    wrapped = DeepProMPModel()
+    wrapped._set(model)
+    for s in planner_sets[:10]:
+        lat = planner_condition(model, s["x"], s["y"], s["contexts"])
+        served = core.handles.get(core.condition(request(s)).handle).latent
+        np.testing.assert_allclose(lat.mean, served.mean, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(wrapped.condition(s["x"], s["y"], s["contexts"]).mean, lat.mean, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("path", [SPLIT, PLAIN], ids=["split", "plain"])
+def test_condition_refuses_overflow_and_invalid_arguments_with_what_is_expected(path):
+    prim = DeepProMP.from_checkpoint(str(path))
+    with pytest.raises(ValueError, match=r"NaN or inf \(an overflow\): largest \|via-point position\| 1e\+308 rad"):
+        prim.condition([0.5], np.full((1, 6), 1e308))
+    with pytest.raises(ValueError, match="largest \\|context value\\| 1e\\+308"):
+        prim.condition([0.5], prim.mean_trajectory(prim.prior(), [0.5]), contexts={"object": np.full(3, 1e308)})
+    for bad in (0.0, -1e-3, float("nan"), "1e-3", True):
+        with pytest.raises(ValueError, match="via_noise .* expected a finite standard deviation > 0"):
+            prim.condition([0.5], prim.mean_trajectory(prim.prior(), [0.5]), via_noise=bad)
+    for bad in (-1, 2.5, None):
+        with pytest.raises(ValueError, match="n_candidates .* expected an integer >= 0"):
+            prim.condition([0.5], prim.mean_trajectory(prim.prior(), [0.5]), n_candidates=bad)
+    ok = prim.condition([0.5], prim.mean_trajectory(prim.prior(), [0.5]) + 0.01)
+    assert np.all(np.isfinite(ok.mean)) and np.all(np.isfinite(ok.var))
