@@ -40,8 +40,9 @@ def test_refinement_figures_cover_every_set_built_to_be_reachable(last):
         assert 0.0 <= last[name] <= 1.0
     # the max error is over EVERY built set, met or not: above the tolerance exactly when one was missed
     assert (share < 1.0) == (err > 1e-6), (share, err)
-    # refinement moves every built set far closer than the posterior's mean left it
-    assert err < 0.1 * last["refine_start_err_rad"], (err, last["refine_start_err_rad"])
+    # refinement moves every built set far closer than the posterior's mean left it, or to the tolerance
+    # when the conditioning left it near (a split latent's exact conditioning: ~1e-6 rad already)
+    assert err < max(0.1 * last["refine_start_err_rad"], 1e-6), (err, last["refine_start_err_rad"])
     # iterations are counted over the met sets only (-1: none met)
     assert (1 <= last["refine_steps"] <= 200) if share > 0 else last["refine_steps"] == -1, last["refine_steps"]
     # held-out sets are reported on their own: their error is not folded into the built sets' figure
