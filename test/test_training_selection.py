@@ -12,12 +12,13 @@ from deepprompt_ros.data.demonstration import Demonstration
 from deepprompt_ros.data.synthetic import bimodal_sine
 from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
 from deepprompt_ros.model.phase import phase_basis
+from deepprompt_ros.primitive.deep_promp import DeepProMP
 from deepprompt_ros.training.basis import (CV_VIA_NOISES, cv_basis_hyperparameters, cv_score, cv_via_sets,
                                            fold_assignment, init_basis_pca, pca_basis)
 from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.objectives import sample_subset_weights
-from deepprompt_ros.training.selection import (judge_residual, keep_residual, select_linear_part,
-                                               without_residual)
+from deepprompt_ros.training.selection import (RESIDUAL_SAMPLES, energy_score, judge_residual, keep_residual,
+                                               select_linear_part, without_residual)
 from deepprompt_ros.training.tensors import fit_normalization, to_tensors
 
 torch.set_num_threads(1)
@@ -144,6 +145,23 @@ def test_the_residual_is_kept_only_beyond_one_standard_error():
         keep_residual(off[:, :3], off)
 
 
+def test_the_energy_score_is_the_sample_estimate_of_its_definition_and_rewards_the_modes():
+    rng = np.random.default_rng(0)
+    s, y = rng.standard_normal((6, 4, 2)), rng.standard_normal((4, 2))
+    flat = s.reshape(6, -1)
+    pairs = [np.linalg.norm(flat[i] - flat[j]) for i in range(6) for j in range(6) if i != j]
+    expected = np.mean(np.linalg.norm(flat - y.reshape(-1), axis=1)) - 0.5 * np.mean(pairs)
+    assert energy_score(s, y) == pytest.approx(expected, rel=1e-12)
+    # one demo on the + mode of two (±1): samples of both modes score better than samples at their
+    # average 0, though the average's mean is the closer one to half of such demos
+    both = np.repeat([[1.0], [-1.0]], 100, 0) + 0.01 * rng.standard_normal((200, 1))
+    middle = 0.01 * rng.standard_normal((200, 1))
+    assert energy_score(both, np.ones(1)) == pytest.approx(0.5, abs=0.02)  # 1/2·2 − 1/2·(1/2·2)
+    assert energy_score(middle, np.ones(1)) == pytest.approx(1.0, abs=0.02)
+    with pytest.raises(ValueError, match=">= 2 samples"):
+        energy_score(s[:1], y)
+
+
 HARMONIC = 6  # phase feature sin(π·6·x): a wiggle the 8 RBFs per joint of the linear part cannot follow
 
 
@@ -177,14 +195,62 @@ def test_a_residual_that_fits_what_the_linear_part_cannot_is_kept_a_harmful_one_
     net, norm = _net_with_residual(train, +1.0)
     kept, rec = judge_residual(net, norm, ("a", "b", "c"), val, cfg)
     assert rec["kept"] and kept is net and rec["relative_difference"] + rec["standard_error"] < 0
+    assert rec["score"].startswith(f"energy score of {RESIDUAL_SAMPLES} samples")
+    assert rec["energy_score_with"]["5 via-points"] < 0.5 * rec["energy_score_without"]["5 via-points"]
     assert rec["mse_with"]["5 via-points"] < 0.2 * rec["mse_without"]["5 via-points"]
-    assert set(rec["mse_with"]) == {"start", "5 via-points"} and rec["n_val"] == 6 and rec["judged_on"] == "validation demos"
+    assert set(rec["energy_score_with"]) == set(rec["mse_with"]) == {"start", "5 via-points"}
+    assert rec["n_val"] == 6 and rec["judged_on"] == "validation demos"
     net, norm = _net_with_residual(train, -1.0)  # the wrong sign: twice the error
     dropped, rec = judge_residual(net, norm, ("a", "b", "c"), val, cfg)
     assert not rec["kept"] and dropped.cfg.residual_scale == 0.0 and net.cfg.residual_scale == 1.0
     z, x = torch.randn(3, net.cfg.latent_dim), torch.as_tensor(X, dtype=torch.float32)
     torch.testing.assert_close(dropped.decode(z, x), without_residual(net).decode(z, x))
     torch.testing.assert_close(dropped.decode(z, x), net.decode_linear(z, x.expand(3, -1)))
+
+
+def _net_with_two_modes(train: DemoDataset, amplitude: float) -> tuple[DeepProMPNet, object]:
+    """A split-latent network (1 joint) whose linear part is the PPCA of ``train`` and whose MLP outputs
+    ≈ sign(z_nl[0]) · ``amplitude`` · sin 2πx (rad): hidden units ReLU(20 z_0 ± s), ReLU(±s), s = sin 2πx,
+    give ReLU(20 z_0 + s) − ReLU(20 z_0 − s) − s, which is ±s once |20 z_0| >= |s|. Every encoder gives
+    mean 0 and variance 1 (head weights 0), so q(z_nl) is centred between the modes."""
+    cfg = ModelConfig(n_joints=1, latent_dim=8 + 2, hidden=4, decoder_basis=8, latent_linear=8, phase_harmonics=2,
+                      residual_scale=1.0, via_noise=1e-3, variance_head="exp")
+    net = DeepProMPNet(cfg)
+    norm = fit_normalization(train, T)
+    init_basis_pca(net, to_tensors(train, norm, T), 0.05)
+    col = 2 + 3  # input = [z_nl (2), x, sin πx, cos πx, sin 2πx, cos 2πx]
+    with torch.no_grad():
+        net.head.weight.zero_(), net.head.bias.zero_()
+        for layer in net.decoder:
+            if isinstance(layer, torch.nn.Linear):
+                layer.weight.zero_(), layer.bias.zero_()
+        first = net.decoder[0].weight
+        first[0, 0], first[0, col], first[1, 0], first[1, col] = 20.0, 1.0, 20.0, -1.0
+        first[2, col], first[3, col] = 1.0, -1.0
+        net.decoder[2].weight.copy_(torch.eye(4))
+        amp = amplitude / float(norm.y_std[0])
+        net.decoder[4].weight.copy_(torch.tensor([[amp, -amp, -amp, amp]]))
+    return net.eval(), norm
+
+
+def test_a_residual_that_holds_two_modes_is_kept_where_the_error_of_the_mean_prefers_their_average():
+    rng = np.random.default_rng(3)
+    train = DemoDataset(tuple(Demonstration(f"t{i}", X, 0.05 * rng.standard_normal() * np.sin(np.pi * X)[:, None],
+                                            ("a",)) for i in range(20)), "near 0")
+    # validation demos on the modes ±sin 2πx, both modes present (y = 0 at the start: the start point
+    # cannot tell them apart)
+    modes = [sign * np.sin(2 * np.pi * X) + 0.01 * np.sin(np.pi * X) for sign in [1, -1] * 4]
+    val = DemoDataset(tuple(Demonstration(f"v{i}", X, y[:, None], ("a",)) for i, y in enumerate(modes)), "two modes")
+    net, norm = _net_with_two_modes(train, 1.0)
+    prim = DeepProMP(net, norm, ("a",))
+    s = prim.sample(prim.condition(X[:1], np.zeros((1, 1))), X, 400, 0)[:, T // 4, 0]
+    assert np.mean(s > 0.6) > 0.2 and np.mean(s < -0.6) > 0.2  # the network's samples hold both modes (17 candidates)
+    kept, rec = judge_residual(net, norm, ("a",), val, TrainConfig(n_points=T, seed=0))
+    assert rec["kept"] and kept is net
+    # from the start point alone: the executed mean is one mode, worse than the average of the modes by the
+    # mean's error, while the samples of both modes score better than the unimodal model's
+    assert rec["mse_with"]["start"] > 1.5 * rec["mse_without"]["start"]
+    assert rec["energy_score_with"]["start"] < 0.75 * rec["energy_score_without"]["start"]
 
 
 def test_the_residual_can_be_judged_by_cross_validation_of_the_whole_training():

@@ -33,7 +33,8 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
 
     With ``cfg.auto_select`` the linear part is chosen on the training split before training
     (:func:`~deepprompt_ros.training.selection.select_linear_part`) and the MLP residual kept or
-    dropped on the validation split after it (:func:`~deepprompt_ros.training.selection.judge_residual`);
+    dropped on the validation split after it by the energy score of conditioned samples
+    (:func:`~deepprompt_ros.training.selection.judge_residual`);
     every choice is logged in one line and recorded in the checkpoint's metadata (``selection``,
     and ``train_config`` holds the configuration actually trained).
 
@@ -128,7 +129,7 @@ def selection_line(selection: dict) -> str:
     lin, res = selection["linear_part"], selection["residual"]
     cv = lin.get("cross_validation")
     how = f"CV MSE {cv['cv_mse']:.3e} rad², " if cv else ""
-    r = (f"residual {'kept' if res['kept'] else 'dropped'} (relative difference "
+    r = (f"residual {'kept' if res['kept'] else 'dropped'} (energy score's relative difference "
          f"{res['relative_difference']:+.3f} ± {res['standard_error']:.3f} on the {res['n_val']} {res['judged_on']})"
          if "relative_difference" in res else f"residual: {res['reason']}")
     return (f"selected on the training demos: decoder_basis {lin['decoder_basis']}, latent_linear "

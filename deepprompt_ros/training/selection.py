@@ -5,10 +5,11 @@
    trained on (:func:`deepprompt_ros.training.basis.cv_basis_hyperparameters`);
 2. :func:`judge_residual` — after training, the MLP residual kept or dropped (``residual_scale`` 0)
    by comparing the model with and without it on the validation demos of the training split (or,
-   with ``residual_folds``, on the held-out demos of a cross-validation of the whole training),
-   through the primitive's own conditioning path
-   (:meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.condition`), with the one-standard-error rule
-   (:func:`keep_residual`).
+   with ``residual_folds``, on the held-out demos of a cross-validation of the whole training):
+   the energy score (:func:`energy_score`, a strictly proper scoring rule) of samples of the
+   distribution the primitive's own conditioning path gives
+   (:meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.condition` and ``sample``), with the
+   one-standard-error rule (:func:`keep_residual`).
 
 Held-out (test) demonstrations are never passed to either.
 """
@@ -26,16 +27,18 @@ from deepprompt_ros.primitive.deep_promp import DeepProMP
 from deepprompt_ros.training.basis import cv_basis_hyperparameters, fold_assignment
 from deepprompt_ros.training.config import TrainConfig
 
-__all__ = ["select_linear_part", "judge_residual", "keep_residual", "without_residual", "FALLBACK_LINEAR_PART",
-           "RESIDUAL_VIA_POINTS", "RESIDUAL_DRAWS"]
+__all__ = ["select_linear_part", "judge_residual", "energy_score", "keep_residual", "without_residual",
+           "FALLBACK_LINEAR_PART", "RESIDUAL_VIA_POINTS", "RESIDUAL_DRAWS", "RESIDUAL_SAMPLES"]
 
 #: The linear part used when the training split has fewer than 3 demonstrations (nothing to
 #: cross-validate): 20 basis functions per joint (fewer on a short grid), the whole weight space as
 #: linear latent (a ProMP) and ProMP's default regularizer in rad.
 FALLBACK_LINEAR_PART = {"decoder_basis": 20, "basis_cov_reg": 0.05, "basis_cov_reg_units": "raw", "via_noise": 1e-3}
-#: The residual's validation: ``RESIDUAL_DRAWS`` sets of ``RESIDUAL_VIA_POINTS`` random via-points per demo.
+#: The residual's validation: ``RESIDUAL_DRAWS`` sets of ``RESIDUAL_VIA_POINTS`` random via-points per demo,
+#: each conditioning scored on ``RESIDUAL_SAMPLES`` samples.
 RESIDUAL_VIA_POINTS = 5
 RESIDUAL_DRAWS = 4
+RESIDUAL_SAMPLES = 32
 _CHOSEN = ("decoder_basis", "latent_linear", "basis_cov_reg", "basis_cov_reg_units", "via_noise")
 
 
@@ -64,22 +67,29 @@ def judge_residual(net: DeepProMPNet, norm: Normalization, joint_names, val_ds: 
                    train_ds: DemoDataset | None = None,
                    refit: Callable[[DemoDataset], tuple[DeepProMPNet, Normalization]] | None = None
                    ) -> tuple[DeepProMPNet, dict]:
-    """Keep or drop the trained MLP residual of ``net`` by conditioned reconstructions (whole
-    trajectory, ``cfg.n_points`` phases, rad²) with and without it (``residual_scale`` 0), of
+    """Keep or drop the trained MLP residual of ``net`` by the energy score (:func:`energy_score`) of
+    the conditioned distribution's samples with and without it (``residual_scale`` 0), on
 
     - the validation demos ``val_ds`` by ``net`` (``cfg.residual_folds`` 0), or
     - the held-out demos of a ``cfg.residual_folds``-fold cross-validation on ``train_ds``, by the
       networks ``refit`` trains on the other folds exactly as ``net`` was (its linear part as chosen);
       the demos that judge the residual are then never those that chose its checkpoint.
 
-    Conditionings: the start point alone, ``RESIDUAL_DRAWS`` sets of ``RESIDUAL_VIA_POINTS`` random
-    via-points (seeded, averaged into one) and — when the data has them — the start point with every
-    context and the images. Each conditioning's errors are divided by its mean error without the
-    residual (so each weighs the same), and :func:`keep_residual` decides on the per-demo mean of
-    those relative differences.
+    The score is that of :data:`RESIDUAL_SAMPLES` samples of the whole trajectory (``cfg.n_points``
+    phases, each joint divided by its normalization std) drawn by
+    :meth:`~deepprompt_ros.primitive.deep_promp.DeepProMP.sample` from the latent
+    :meth:`~deepprompt_ros.primitive.deep_promp.DeepProMP.condition` returns, against the demo. A
+    strictly proper score of samples sees what an error of the conditioned mean cannot: a residual
+    that holds several modes (the mean of two modes is closer to either than a confident wrong
+    one) and one that moves the samples away from the demos. Conditionings: the start point alone,
+    ``RESIDUAL_DRAWS`` sets of ``RESIDUAL_VIA_POINTS`` random via-points (seeded, averaged into one)
+    and — when the data has them — the start point with every context and the images. Each
+    conditioning's scores are divided by its mean score without the residual (so each weighs the
+    same), and :func:`keep_residual` decides on the per-demo mean of those relative differences.
 
     Returns (the network to keep: ``net``, or a copy with ``residual_scale`` 0; the record of the
-    decision: kept, the mean relative difference and its standard error, the MSEs per conditioning)."""
+    decision: kept, the score that decided, the mean relative difference and its standard error,
+    the energy scores per conditioning and, for information, the conditioned means' MSEs (rad²))."""
     if not net.cfg.decoder_basis or net.cfg.residual_scale == 0:
         return net, {"kept": False, "reason": "no residual to judge (residual_scale 0 or no linear basis)"}
     folds = cfg.residual_folds
@@ -95,48 +105,78 @@ def judge_residual(net: DeepProMPNet, norm: Normalization, joint_names, val_ds: 
         for k in range(folds):
             held = DemoDataset(tuple(d for d, f in zip(train_ds.demos, fold_of) if f == k), f"{train_ds.source}:held{k}")
             fit_on = DemoDataset(tuple(d for d, f in zip(train_ds.demos, fold_of) if f != k), f"{train_ds.source}:fold{k}")
-            parts.append(_residual_errors(*refit(fit_on), joint_names, held, cfg, extras))
-        with_r, without = (np.concatenate([p[m] for p in parts], 1) for m in (0, 1))
+            parts.append(_residual_scores(*refit(fit_on), joint_names, held, cfg, extras))
+        es, mse = (np.concatenate([p[m] for p in parts], 2) for m in (0, 1))
         judged = f"held-out demos of a {folds}-fold cross-validation on the training demos"
     else:
-        with_r, without = _residual_errors(net, norm, joint_names, val_ds, cfg, extras)
+        es, mse = _residual_scores(net, norm, joint_names, val_ds, cfg, extras)
         judged = "validation demos"
-    scale = np.maximum(without.mean(1, keepdims=True), 1e-300)
-    keep, diff, se = keep_residual(with_r / scale, without / scale)
+    scale = np.maximum(es[1].mean(1, keepdims=True), 1e-300)
+    keep, diff, se = keep_residual(es[0] / scale, es[1] / scale)
     labels = ["start", f"{RESIDUAL_VIA_POINTS} via-points"] + (["start + contexts"] if extras else [])
-    record = {"kept": keep, "relative_difference": diff, "standard_error": se, "n_val": int(with_r.shape[1]),
-              "judged_on": judged, "mse_with": dict(zip(labels, with_r.mean(1).tolist())),
-              "mse_without": dict(zip(labels, without.mean(1).tolist()))}
+    record = {"kept": keep, "score": f"energy score of {RESIDUAL_SAMPLES} samples (whole trajectory, normalized "
+                                     "joint units)",
+              "relative_difference": diff, "standard_error": se, "n_val": int(es.shape[2]), "judged_on": judged,
+              "energy_score_with": dict(zip(labels, es[0].mean(1).tolist())),
+              "energy_score_without": dict(zip(labels, es[1].mean(1).tolist())),
+              "mse_with": dict(zip(labels, mse[0].mean(1).tolist())),
+              "mse_without": dict(zip(labels, mse[1].mean(1).tolist()))}
     if keep:
         return net, record
     return without_residual(net), record
 
 
-def _residual_errors(net: DeepProMPNet, norm: Normalization, joint_names, demos: DemoDataset, cfg: TrainConfig,
+def energy_score(samples: np.ndarray, y: np.ndarray) -> float:
+    """The energy score ES(P, y) = E‖X − y‖ − ½ E‖X − X′‖ of a distribution P given by samples, X, X′
+    independent draws of P (Gneiting & Raftery, "Strictly proper scoring rules, prediction, and
+    estimation", JASA 102(477), 2007, Eq. 22 with β = 1): strictly proper, lower is better, in the
+    units of y. The second expectation is estimated without the pairs of a sample with itself
+    (unbiased for K >= 2 samples).
+
+    samples : array, shape (K, ...); y : array, the shape of one sample."""
+    s = np.asarray(samples, dtype=np.float64).reshape(len(samples), -1)
+    k = s.shape[0]
+    if k < 2:
+        raise ValueError(f"energy_score needs >= 2 samples, got {k}")
+    to_y = np.linalg.norm(s - np.asarray(y, dtype=np.float64).reshape(-1), axis=1).mean()
+    gram = s @ s.T
+    sq = np.diag(gram)
+    pair = np.sqrt(np.maximum(sq[:, None] + sq[None, :] - 2.0 * gram, 0.0))
+    return float(to_y - pair.sum() / (2.0 * k * (k - 1)))
+
+
+def _residual_scores(net: DeepProMPNet, norm: Normalization, joint_names, demos: DemoDataset, cfg: TrainConfig,
                      extras: bool) -> tuple[np.ndarray, np.ndarray]:
-    """(with, without): (conditionings, n_demos) MSEs of ``demos`` reconstructed by ``net`` with and
-    without its residual, the conditionings of :func:`judge_residual`."""
+    """(energy scores, MSEs): each (2 = with / without the residual, conditionings, n_demos), of
+    ``demos`` conditioned as in :func:`judge_residual`. The energy score is per phase and joint scale
+    (the norm of a whole trajectory in normalized units divided by sqrt(T d)); both models draw their
+    samples with the same seeds."""
     on = DeepProMP(net, norm, joint_names)
     off = on.with_residual_scale(0.0)
     x = np.linspace(0.0, 1.0, cfg.n_points)
-    err = np.zeros((2, 1 + RESIDUAL_DRAWS + int(extras), len(demos)))
+    std = np.asarray(norm.y_std, dtype=np.float64)
+    root = np.sqrt(cfg.n_points * len(std))
+    n_sets = 1 + RESIDUAL_DRAWS + int(extras)
+    es, mse = np.zeros((2, n_sets, len(demos))), np.zeros((2, n_sets, len(demos)))
     n_via = min(RESIDUAL_VIA_POINTS, cfg.n_points)
     for i, demo in enumerate(demos.demos):
         y = demo.resampled(cfg.n_points)
         sets = [np.array([0])] + [np.sort(np.random.default_rng([cfg.seed, 7, i, r]).choice(cfg.n_points, n_via,
                                                                                            replace=False))
                                   for r in range(RESIDUAL_DRAWS)]
+        conds = [dict(via_x=x[sel], via_y=y[sel]) for sel in sets]
+        if extras:
+            conds.append(dict(via_x=x[:1], via_y=y[:1], contexts=demo.contexts or None, images=demo.images))
         for m, prim in enumerate((on, off)):
-            for c, sel in enumerate(sets):
-                lat = prim.condition(x[sel], y[sel])
-                err[m, c, i] = float(((prim.mean_trajectory(lat, x) - y) ** 2).mean())
-            if extras:
-                lat = prim.condition(x[:1], y[:1], contexts=demo.contexts or None, images=demo.images)
-                err[m, -1, i] = float(((prim.mean_trajectory(lat, x) - y) ** 2).mean())
+            for c, kw in enumerate(conds):
+                lat = prim.condition(**kw)
+                mse[m, c, i] = float(((prim.mean_trajectory(lat, x) - y) ** 2).mean())
+                s = prim.sample(lat, x, RESIDUAL_SAMPLES, np.random.default_rng([cfg.seed, 11, i, c]))
+                es[m, c, i] = energy_score(s / std, y / std) / root
     # the random via-point sets count as one conditioning: their mean
-    per = lambda e: np.concatenate([e[:1], e[1:1 + RESIDUAL_DRAWS].mean(0, keepdims=True),  # noqa: E731
-                                    e[1 + RESIDUAL_DRAWS:]])
-    return per(err[0]), per(err[1])
+    per = lambda e: np.concatenate([e[:, :1], e[:, 1:1 + RESIDUAL_DRAWS].mean(1, keepdims=True),  # noqa: E731
+                                    e[:, 1 + RESIDUAL_DRAWS:]], 1)
+    return per(es), per(mse)
 
 
 def without_residual(net: DeepProMPNet) -> DeepProMPNet:
