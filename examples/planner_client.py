@@ -26,7 +26,10 @@ def main(argv=None) -> int:
     ap.add_argument("--object", type=float, nargs=3, default=[0.35, 0.1, 0.05], help="object position (m)")
     ap.add_argument("--via-phase", type=float, default=0.5)
     ap.add_argument("--via-offset", type=float, default=0.05, help="rad added to joint_1 of the preview at the via phase")
-    ap.add_argument("--duration", type=float, default=8.0)
+    # the reach follows its demonstrations' speed: the server refuses (LIMIT_VIOLATION, naming the shortest
+    # duration it accepts) a goal faster than the Gen3 lite's velocity limits allow; 8 s is well above that
+    ap.add_argument("--duration", type=float, default=8.0,
+                    help="s from phase 0 to 1 (at least the shortest the velocity limits allow for this motion)")
     ap.add_argument("--server", default="/primitive_server")
     args = ap.parse_args(argv)
 

@@ -358,8 +358,8 @@ def dataset_digest(datasets: Sequence[DemoDataset]) -> str:
 def base_train_config(path: str | pathlib.Path | None = None) -> TrainConfig:
     """The deep models' base configuration: ``path`` (a TrainConfig YAML, used as is), or the shipped
     ``config/train_gen3_lite_reach.yaml`` (Neural-Process objective, Adam lr 1e-3) with the paper's
-    mini-batches of 16 and ``train``'s default decoder selection (``auto_select``; the file turns it
-    off for the served reach model)."""
+    mini-batches of 16 and ``train``'s default decoder selection (``auto_select``, as the file sets for
+    the served reach model)."""
     if path:
         return TrainConfig.from_yaml(path)
     return dataclasses.replace(TrainConfig.from_yaml(ROOT / "config" / "train_gen3_lite_reach.yaml"), batch_size=16,

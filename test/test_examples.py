@@ -41,10 +41,11 @@ def test_readme_python_example_meets_the_via_point(example):
     match = PRINTED.search(printed)
     assert match, printed
     before, after, _ = float(match[1]), float(match[2]), int(match[3])
-    # the via-point is 0.05 rad from the context-only mean on joint_1: conditioning alone leaves most
-    # of it, refinement must meet it to 1e-6 rad
+    # the via-point is 0.05 rad from the context-only mean on joint_1: the exact conditioning of the
+    # shipped model's linear latent block leaves a few microradians of it (its via-point noise is not
+    # zero), refinement must meet it to 1e-6 rad
     assert after < 1e-6, printed
-    assert before > 100 * after and before > 1e-3, printed
+    assert after < before < 1e-5, printed
 
 
 def test_readme_says_what_the_example_prints(example):

@@ -27,6 +27,7 @@ from deepprompt_ros.execution.limits import check_limits
 from deepprompt_ros.robots.spec import load_robot
 from deepprompt_ros.ros.testing import JointStateTap, NodeProcess, RosTestClient
 from deepprompt_ros.server.config import ServerConfig, robot_limits
+from served_reach import reach_timing
 
 SPEC = load_robot("gen3_lite")
 LIMITS = robot_limits(SPEC, ServerConfig())
@@ -61,6 +62,7 @@ def client(ros_env, nodes):
         assert c.wait_for(c.ac.server_is_ready, 60), server.output_tail()
         assert c.wait_for(lambda: "receiving joint_states" in server.output(), 60), (
             server.output_tail() + nodes["sim"].output_tail())
+        c.timing = reach_timing(c)  # goal durations the velocity limits allow for the served reach
         yield c
         c.ac.destroy()
 
@@ -130,7 +132,7 @@ def new_goal_succeeds(client, server, old_pid):
     assert until(client, lambda: "control process restarted" in server.output() and child_pid(server) != old_pid,
                  30), server.output_tail()
     fresh(client)
-    _, fut = send(client, 1.2)
+    _, fut = send(client, client.timing.ordinary)
     res = result(client, fut)
     assert res.success, res.message + server.output_tail()
     assert_stream_ok(*commands(client))
@@ -161,8 +163,11 @@ def test_killed_while_a_canceled_goal_brakes_ends_it_with_internal_error(client,
     pid = child_pid(server)
     fb = []
     fresh(client)
-    gh, fut = send(client, 1.2, fb)  # near the shortest feasible duration: braking takes about a second
-    assert until(client, lambda: (fb and fb[-1].phase > 0.45) or fut.done(), 20)
+    # near the top speed the limits allow, canceled at the phase of that speed: braking takes about a second
+    # (canceled before it, the speed may still rise while the braking starts)
+    cancel_at = client.timing.fastest_phase()
+    gh, fut = send(client, client.timing.fast, fb)
+    assert until(client, lambda: (fb and fb[-1].phase > cancel_at) or fut.done(), 20)
     assert not fut.done(), fut.result().result.message
     cancel = gh.cancel_goal_async()
     assert until(client, cancel.done, 5)
@@ -176,7 +181,7 @@ def test_killed_while_a_canceled_goal_brakes_ends_it_with_internal_error(client,
     assert res.code.value == ResultCode.INTERNAL_ERROR and not res.success, res.message
     assert f"the control process (pid {pid}) exited unexpectedly with code -9" in res.message, res.message
     assert time.monotonic() - t_kill < 3.0  # reported, not waited out
-    assert 0.45 < res.final_phase < 1.0, res
+    assert cancel_at < res.final_phase < 1.0, res
     stamps, q, qd = commands(client)
     assert_stream_ok(stamps, q, qd, at_rest=False)  # what was streamed until the kill
     speed = np.abs(qd).max(axis=1)
@@ -190,7 +195,7 @@ def test_a_goal_sent_at_once_after_the_kill_is_executed_by_the_new_process(clien
     r = client.call(Condition, f"{SRV}/condition", Condition.Request(primitive="reach"), timeout=20)
     assert r.success, r.message
     os.kill(pid, signal.SIGKILL)
-    fut = client.ac.send_goal_async(Execute.Goal(handle=r.handle, duration=1.2))
+    fut = client.ac.send_goal_async(Execute.Goal(handle=r.handle, duration=client.timing.ordinary))
     assert until(client, fut.done, 10)
     res = result(client, fut.result().get_result_async(), 20.0)
     # lost with the old process (it reached it before its exit was noticed), or executed by the new one

@@ -11,9 +11,10 @@ goal"): each PREEMPTED one by a goal accepted after it, each SUCCESS one with no
 ran (the order of acceptance decides, not the order in which the server finished planning them); and
 the command stream is continuous within the limits across every splice.
 
-Run as ``python test/test_ros_faults_planners.py planner <name> <seed> <rounds> <folder>`` this file
-is one planner (what the test starts twice): it writes ``<folder>/<name>.ready`` once it has found the
-server, starts when ``<folder>/go`` exists, and writes its results to ``<folder>/<name>.jsonl``.
+Run as ``python test/test_ros_faults_planners.py planner <name> <seed> <rounds> <folder> <duration>``
+this file is one planner (what the test starts twice): it writes ``<folder>/<name>.ready`` once it has
+found the server, starts when ``<folder>/go`` exists, sends goals of ``<duration>`` s and writes its
+results to ``<folder>/<name>.jsonl``.
 """
 from __future__ import annotations
 
@@ -24,16 +25,16 @@ import time
 import numpy as np
 
 RESULT_SUCCEEDED, RESULT_ABORTED = 4, 6  # action_msgs/GoalStatus
-DURATION = 3.0  # within the velocity limits for every via-point drawn (the prior mean needs >= 1.1 s)
 SRV = "/primitive_server"
 
 
 # ------------------------------------------------------------------------------------------------
 # one planner (a process of its own)
 # ------------------------------------------------------------------------------------------------
-def planner_main(name: str, seed: int, rounds: int, folder: str) -> int:
-    """``rounds`` x (Condition with a via-point, Execute, a random pause), starting when the file
-    ``go`` appears in ``folder``; one JSON line per Condition and per goal into ``<name>.jsonl``."""
+def planner_main(name: str, seed: int, rounds: int, folder: str, duration: float) -> int:
+    """``rounds`` x (Condition with a via-point, Execute of ``duration`` s, a random pause), starting
+    when the file ``go`` appears in ``folder``; one JSON line per Condition and per goal into
+    ``<name>.jsonl``."""
     import pathlib
 
     import rclpy
@@ -76,7 +77,7 @@ def planner_main(name: str, seed: int, rounds: int, folder: str) -> int:
             if not r.success:
                 continue
             t_send = time.time()
-            gh = wait(act.send_goal_async(Execute.Goal(handle=r.handle, duration=DURATION)), 30)
+            gh = wait(act.send_goal_async(Execute.Goal(handle=r.handle, duration=duration)), 30)
             t_accept = time.time()
             res = wait(gh.get_result_async(), 60)
             lines.append({"kind": "goal", "planner": name, "round": i, "accepted": gh.accepted,
@@ -92,8 +93,8 @@ def planner_main(name: str, seed: int, rounds: int, folder: str) -> int:
     return 0
 
 
-if __name__ == "__main__" and len(sys.argv) == 6 and sys.argv[1] == "planner":
-    sys.exit(planner_main(sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), sys.argv[5]))
+if __name__ == "__main__" and len(sys.argv) == 7 and sys.argv[1] == "planner":
+    sys.exit(planner_main(sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), sys.argv[5], float(sys.argv[6])))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -106,6 +107,7 @@ from deepprompt_ros.execution.limits import check_limits  # noqa: E402
 from deepprompt_ros.robots.spec import load_robot  # noqa: E402
 from deepprompt_ros.ros.testing import JointStateTap, NodeProcess, RosTestClient  # noqa: E402
 from deepprompt_ros.server.config import ServerConfig, robot_limits  # noqa: E402
+from served_reach import reach_timing  # noqa: E402
 
 SPEC = load_robot("gen3_lite")
 LIMITS = robot_limits(SPEC, ServerConfig())
@@ -146,11 +148,14 @@ def test_two_planners_condition_and_execute_at_once(ros_env, nodes, tmp_path):
     server = nodes["server"]
     with RosTestClient(ros_env) as client:
         tap = JointStateTap(client, "joint_command")
+        # the planners' goal duration: executable within the velocity limits for every via-point drawn (they
+        # lie within 0.015 rad of the prior mean, which the ordinary margin over its shortest duration covers)
+        duration = reach_timing(client, timeout=60.0).ordinary  # (the server may still be starting)
         planners = {}
         try:
             for name, seed in (("a", 1), ("b", 2)):
                 planners[name] = NodeProcess([sys.executable, __file__, "planner", name, str(seed), str(ROUNDS),
-                                              str(tmp_path)], ros_env, tmp_path / f"planner_{name}.log")
+                                              str(tmp_path), str(duration)], ros_env, tmp_path / f"planner_{name}.log")
             assert client.wait_for(lambda: all((tmp_path / f"{n}.ready").exists() or not p.running()
                                                for n, p in planners.items()), 60), server.output_tail()
             (tmp_path / "go").touch()  # both at once

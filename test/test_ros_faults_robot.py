@@ -41,6 +41,7 @@ from deepprompt_ros.ros.fastpath import realtime
 from deepprompt_ros.ros.fastpath.polled import NotExecuted, take_newest
 from deepprompt_ros.ros.testing import JointStateTap, NodeProcess, RosTestClient
 from deepprompt_ros.server.config import ServerConfig, robot_limits
+from served_reach import reach_timing
 
 SPEC = load_robot("gen3_lite")
 NAMES = SPEC.joint_names
@@ -49,8 +50,6 @@ LIMITS = robot_limits(SPEC, SHIPPED)
 DT = 1e-3  # the Gen3 lite's control rate, the shipped control_rate_hz 0
 SRV = "/primitive_server"
 CHILD = re.compile(r"control loop running in its own process \(pid (\d+)\)")
-#: Duration of the executions (the shipped reach needs >= 1.1 s within the velocity limits).
-DURATION = 2.0
 #: joint_states per second of the test's own publisher, and physics steps (and joint_states) per
 #: second of sim_bridge (less than the arm's 1 kHz: a lighter process on a busy machine)
 FAKE_RATE_HZ = SIM_RATE_HZ = 250.0
@@ -143,6 +142,9 @@ def client(ros_env, server, sim):
         assert c.wait_for(lambda: "receiving joint_states" in server.output(), 60), (
             server.output_tail() + sim.ensure().output_tail())
         assert c.wait_for_publisher("/joint_command", 30), server.output_tail()
+        # durations of the executions (s): .ordinary, executable within the velocity limits; .fast, near the
+        # shortest they allow (the lagging robot falls far behind its commands)
+        c.timing = reach_timing(c)
         yield c
         c.fake.close()
         c.ac.destroy()
@@ -157,7 +159,9 @@ def condition(client) -> str:
     return r.handle
 
 
-def send(client, handle, feedback=None, duration=DURATION):
+def send(client, handle, feedback=None, duration=None):
+    """Send a goal of ``duration`` s (default ``client.timing.ordinary``); its result future once accepted."""
+    duration = client.timing.ordinary if duration is None else duration
     fut = client.ac.send_goal_async(Execute.Goal(handle=handle, duration=duration),
                                     feedback_callback=None if feedback is None else
                                     (lambda m: feedback.append(m.feedback)))
@@ -215,7 +219,7 @@ def stop_time_bound(qd, acc) -> float:
     return float(np.max((np.abs(acc) + a_max) / j_max + (np.abs(qd) + v_extra) / a_max + a_max / j_max))
 
 
-def start_when_served(client, feedback, duration=DURATION, timeout=30.0):
+def start_when_served(client, feedback, duration=None, timeout=30.0):
     """Condition and send a goal, again while it is refused with ROBOT_STATE_STALE (the control process
     reports the state it receives every 10 ms; a new robot takes a moment to be discovered); the
     running goal's result future."""
@@ -232,7 +236,7 @@ def start_when_served(client, feedback, duration=DURATION, timeout=30.0):
         client.spin_for(0.2)
 
 
-def start_and_reach(client, phase, duration=DURATION, attempts=3):
+def start_and_reach(client, phase, duration=None, attempts=3):
     """A goal started and seen past ``phase`` (feedback), its result future and feedback list. A goal
     that ends before (the robot paused past stale_timeout on a busy machine: ROBOT_STATE_STALE) is
     sent again: the faults are injected into a running goal."""
@@ -248,7 +252,7 @@ def start_and_reach(client, phase, duration=DURATION, attempts=3):
     pytest.fail(f"{attempts} goals ended before reaching phase {phase}")
 
 
-def run_to_success(client, duration=1.2, attempts=3):
+def run_to_success(client, duration=None, attempts=3):
     """A goal that succeeds once the server sees the robot; its commands are checked. A goal that the
     robot's pause past the shipped stale_timeout stopped (a Python simulation on a busy machine:
     ROBOT_STATE_STALE, the robot stopped reporting) is sent again: braking was the right answer."""
@@ -270,7 +274,7 @@ def run_to_success(client, duration=1.2, attempts=3):
 def test_sim_bridge_killed_mid_execution_stops_the_stream_within_the_shipped_stale_timeout(client, sim, server):
     client.fake.on = False
     sim.ensure()
-    fut, fb = start_and_reach(client, 0.2, duration=3.0)
+    fut, fb = start_and_reach(client, 0.2)
     t_kill = time.time_ns()
     sim.proc.kill()
     res = wait_result(client, fut, 10.0)
@@ -396,10 +400,10 @@ def test_a_goal_right_after_another_continues_from_the_last_command_while_the_ro
         assert client.wait_for(lambda: js.take() or js.raw, 30), sim.proc.output_tail()
         for attempt in range(3):
             back = condition(client)  # the reach run backward: it starts where the first goal ends
-            fut = start_when_served(client, [], duration=1.2)  # about the fastest the velocity limits allow
+            fut = start_when_served(client, [], duration=client.timing.fast)
             res = wait_result(client, fut)
             js.take()
-            fut_b = client.ac.send_goal_async(Execute.Goal(handle=back, duration=1.2, reverse=True))
+            fut_b = client.ac.send_goal_async(Execute.Goal(handle=back, duration=client.timing.fast, reverse=True))
             if res.code.value != ResultCode.SUCCESS:  # the slow simulation paused past stale_timeout
                 print(f"first goal ended {res.message}, sent again")
                 wait_result(client, send_accepted(client, fut_b), 20.0)

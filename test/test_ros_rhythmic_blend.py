@@ -206,6 +206,8 @@ def test_wam_rhythmic_cycles_have_no_seam_and_keep_the_limits(rig_factory):
 
 
 # ------------------------------------------------------------------------------------------------
+#: the reach's default_duration (config/primitives.yaml): well above the shortest the velocity limits allow
+#: for these two contexts' reaches, which move at their demonstrations' speed
 BLEND_DURATION = 6.0
 
 
