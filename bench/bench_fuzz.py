@@ -67,7 +67,8 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from deepprompt_ros.common.results import Code  # noqa: E402  (ROS-free: the test imports this module)
+from bench.bench_ros import min_duration  # noqa: E402  (ROS-free, as this module: the test imports it)
+from deepprompt_ros.common.results import Code  # noqa: E402
 from deepprompt_ros.server.config import ServerConfig  # noqa: E402
 
 #: the server's request limits: its defaults (a --param that changes one is not known to the clients)
@@ -136,18 +137,27 @@ class Factory:
     rng : numpy Generator
     primitives : list of deepprompt_msgs/PrimitiveInfo (from ListPrimitives)
     home : array, shape (d,), a configuration inside the limits (via-points scatter around it)
+    prior_durations : mapping primitive -> float
+        Shortest duration (s) the velocity limits allow for each primitive's prior mean.
 
     Each builder returns ``(request, note)``; ``note`` names the broken fields ('' = none broken).
+
+    Goal timing is relative to the handle's shortest duration (from the preview its Condition or Blend
+    answer carried, else its primitive's prior): a well-formed duration or phase rate is 1.2-3 times
+    slower than that, so such goals are mostly executable (a coarse preview misses some peaks); a
+    broken one may be twice too fast (refused: LIMIT_VIOLATION), out of range or contradictory.
     """
 
     P_VALID = 0.35   # share of requests built without breaking any field
     P_BREAK = 0.35   # per field of a broken request: the chance it is broken
 
-    def __init__(self, rng, primitives, home):
+    def __init__(self, rng, primitives, home, prior_durations):
         self.rng = rng
         self.prims = {p.name: p for p in primitives}
         self.home = np.asarray(home, dtype=np.float64)
         self.handles: dict[str, list[str]] = collections.defaultdict(list)  # primitive -> handles issued
+        self.prior_durations = dict(prior_durations)
+        self.durations: dict[str, float] = {}  # handle -> its shortest duration (s), where its preview told
         self._breaking = False
         self._notes: list[str] = []
 
@@ -211,10 +221,22 @@ class Factory:
             return v
         return int(self._pick(good))
 
-    def remember(self, primitive: str, handle: str) -> None:
+    def remember(self, primitive: str, handle: str, duration: float | None = None) -> None:
+        """Keep ``handle`` of ``primitive`` for later requests; ``duration``: its shortest (s), if known."""
         if handle:
             self.handles[primitive].append(handle)
+            for gone in self.handles[primitive][:-64]:
+                self.durations.pop(gone, None)
             del self.handles[primitive][:-64]
+            if duration is not None:
+                self.durations[handle] = float(duration)
+
+    def shortest_duration(self, handle: str) -> float:
+        """The shortest duration (s) the velocity limits allow for ``handle``: from its preview, else its
+        primitive's prior mean (a handle reads '<primitive>-...'), else the longest of the priors."""
+        if handle in self.durations:
+            return self.durations[handle]
+        return self.prior_durations.get(handle.split("-", 1)[0], max(self.prior_durations.values()))
 
     # -- Condition ---------------------------------------------------------------------------------
     def condition(self):
@@ -429,13 +451,15 @@ class Factory:
 
         self._start()
         g = Execute.Goal(handle=self._handle())
+        shortest = self.shortest_duration(g.handle)
         timing = self._pick(("duration", "duration", "phase_rate", "default"))
         if timing == "duration":
-            g.duration = float(self.rng.uniform(0.5, 3.0))
+            g.duration = shortest * float(self.rng.uniform(1.2, 3.0))
         elif timing == "phase_rate":
-            g.phase_rate = float(self.rng.uniform(0.3, 2.0))
+            g.phase_rate = 1.0 / (shortest * float(self.rng.uniform(1.2, 3.0)))
         if self._break("timing", 0.4):
-            kind = self._bad("timing", ("duration bad", "phase_rate bad", "both set", "too short", "too long"))
+            kind = self._bad("timing", ("duration bad", "phase_rate bad", "both set", "too short", "too fast",
+                                        "too long"))
             if kind == "duration bad":
                 g.duration = float(self._bad("duration", BAD_FLOATS + (-1.0,)))
             elif kind == "phase_rate bad":
@@ -444,6 +468,8 @@ class Factory:
                 g.duration, g.phase_rate = 1.0, 1.0
             elif kind == "too short":
                 g.duration = float(self._pick((1e-9, 0.009, 0.05)))
+            elif kind == "too fast":
+                g.duration, g.phase_rate = 0.5 * shortest, 0.0
             else:
                 g.duration = float(self._pick((86400.0, 86401.0, 1e9)))
         g.cycles = self._count("cycles", (0, 1, 2, 3), (100001, UINT32_MAX), (100000,))
@@ -495,9 +521,14 @@ class Client:
         self.goals: list[dict] = []      # sent and accepted, result pending: {gh, fut, record}
         self.finished: list = []         # goal handles whose result arrived (for cancels of finished goals)
         self.factory: Factory | None = None
+        self.primitives: dict = {}       # name -> deepprompt_msgs/PrimitiveInfo (ready)
+        self.limits = None               # the Gen3 lite's JointLimits under the default ServerConfig (ready)
 
     def ready(self, timeout: float) -> bool:
+        from deepprompt_msgs.srv import Condition
+
         from deepprompt_ros.robots.spec import load_robot
+        from deepprompt_ros.server.config import robot_limits
 
         deadline = time.monotonic() + timeout
         if not self.c.wait_for(lambda: self.ac.server_is_ready() and all(
@@ -506,8 +537,25 @@ class Client:
         if not self._warm_up(deadline):
             return False
         res = self._call("list_primitives", None, timeout)
-        self.factory = Factory(self.rng, list(res.primitives), load_robot("gen3_lite").home)
+        self.primitives = {p.name: p for p in res.primitives}
+        self.limits = robot_limits(load_robot("gen3_lite"), LIMITS)
+        prior = {}
+        for name in self.primitives:  # each prior mean on the execution grid (not counted as a request)
+            r = self._call("condition", Condition.Request(primitive=name, preview_points=LIMITS.execution_grid_points),
+                           timeout)
+            if not r.success:
+                raise RuntimeError(f"bench_fuzz client: Condition of '{name}' with no input failed: {r.message}")
+            prior[name] = self.shortest_duration(name, r.preview)
+        self.factory = Factory(self.rng, list(res.primitives), load_robot("gen3_lite").home, prior)
         return True
+
+    def shortest_duration(self, primitive: str, preview) -> float | None:
+        """The shortest duration (s) the velocity limits allow for the trajectory of ``preview`` (an answer's
+        deepprompt_msgs/Preview of ``primitive``); None if it has fewer than 3 phases."""
+        if preview.n_points < 3 or primitive not in self.primitives:
+            return None
+        periodic = self.primitives[primitive].phase_type == "rhythmic"
+        return min_duration(preview, self.limits, LIMITS, periodic)
 
     def _warm_up(self, deadline: float) -> bool:
         """One answer from every service and one Execute result (a goal with no handle), each tried
@@ -565,7 +613,8 @@ class Client:
         self._record(kind, note, classify(True, res.success, res.code.value, res.message), t0, res.code.value,
                      res.message)
         if kind in ("condition", "blend") and res.handle:
-            f.remember(req.primitive if kind == "condition" else req.handle_a.split("-", 1)[0], res.handle)
+            primitive = req.primitive if kind == "condition" else req.handle_a.split("-", 1)[0]
+            f.remember(primitive, res.handle, self.shortest_duration(primitive, res.preview))
 
     def send_goal(self) -> None:
         goal, note = self.factory.goal()
@@ -687,9 +736,11 @@ def role_client(out: str, gate: str, n: int, seed, timeout: float) -> None:
 # orchestrator
 # ------------------------------------------------------------------------------------------------
 def write_primitives(tmp: pathlib.Path) -> pathlib.Path:
-    """A primitives file serving the shipped reach model as ``reach`` and an untrained rhythmic image
-    primitive ``wave`` (6 Gen3 lite joints, 24x32 images, a few mrad around home)."""
+    """A primitives file serving the shipped reach model as ``reach`` (with its shipped default_duration,
+    config/primitives.yaml) and an untrained rhythmic image primitive ``wave`` (6 Gen3 lite joints, 24x32
+    images, a few mrad around home)."""
     import torch
+    import yaml
 
     from deepprompt_ros import paths
     from deepprompt_ros.model.checkpoint import Normalization, save_checkpoint
@@ -704,19 +755,24 @@ def write_primitives(tmp: pathlib.Path) -> pathlib.Path:
                            Normalization(np.asarray(spec.home, dtype=np.float64), np.full(len(spec.joint_names), 0.02)),
                            spec.joint_names)
     reach = paths.find_data_file("models", "gen3_lite_reach.safetensors")
+    shipped = yaml.safe_load(paths.find_data_file("config", "primitives.yaml").read_text())["primitives"]
+    default = next(p for p in shipped if p["name"] == "reach").get("default_duration", 0.0)
     f = tmp / "primitives.yaml"
-    f.write_text(f"primitives:\n  - name: reach\n    model: {reach}\n    default_duration: 3.0\n"
+    f.write_text(f"primitives:\n  - name: reach\n    model: {reach}\n    default_duration: {default}\n"
                  f"  - name: wave\n    model: {wave}\n    default_duration: 2.0\n")
     return f
 
 
 def final_checks(c, ac, home) -> list[str]:
-    """A well-formed Condition and an Execute of its handle; the list of what went wrong ([] = fine)."""
+    """A well-formed Condition and an Execute of its handle (1.3 times slower than the shortest duration
+    its preview allows); the list of what went wrong ([] = fine)."""
     from deepprompt_msgs.action import Execute
     from deepprompt_msgs.msg import Context
     from deepprompt_msgs.srv import Condition, ListPrimitives
 
+    from deepprompt_ros.robots.spec import load_robot
     from deepprompt_ros.ros import conversions as conv
+    from deepprompt_ros.server.config import robot_limits
 
     problems = []
     try:
@@ -724,19 +780,22 @@ def final_checks(c, ac, home) -> list[str]:
         if not lp.success or sorted(p.name for p in lp.primitives) != ["reach", "wave"]:
             problems.append(f"ListPrimitives: success {lp.success}, {[p.name for p in lp.primitives]}: {lp.message}")
         req = Condition.Request(primitive="reach", via_points=conv.via_points_to_msgs([1.0], [home + 0.05]),
-                                contexts=[Context(modality="object", values=[0.4, 0.0, 0.1])], preview_points=50)
+                                contexts=[Context(modality="object", values=[0.4, 0.0, 0.1])],
+                                preview_points=LIMITS.execution_grid_points)
         r = c.call(Condition, f"{SERVER}/condition", req, timeout=30.0)
         prev = conv.preview_from_msg(r.preview) if r.success else None
-        if not (r.success and r.code.value == Code.SUCCESS and r.handle and prev.mean.shape == (50, 6)
-                and np.all(np.isfinite(prev.mean)) and r.refine_max_error < 0.5):
+        if not (r.success and r.code.value == Code.SUCCESS and r.handle
+                and prev.mean.shape == (LIMITS.execution_grid_points, 6) and np.all(np.isfinite(prev.mean))
+                and r.refine_max_error < 0.5):
             problems.append(f"Condition: success {r.success}, code {r.code.value}, handle '{r.handle}': {r.message}")
             return problems
-        fut = ac.send_goal_async(Execute.Goal(handle=r.handle, duration=3.0))
+        duration = 1.3 * min_duration(r.preview, robot_limits(load_robot("gen3_lite"), LIMITS), LIMITS)
+        fut = ac.send_goal_async(Execute.Goal(handle=r.handle, duration=duration))
         if not c.wait_for(fut.done, 30.0) or not fut.result().accepted:
             return problems + ["Execute: the goal was not accepted within 30 s"]
         res = fut.result().get_result_async()
-        if not c.wait_for(res.done, 60.0):
-            return problems + ["Execute: no result within 60 s"]
+        if not c.wait_for(res.done, duration + 60.0):
+            return problems + [f"Execute: no result within {duration + 60.0:.0f} s"]
         out = res.result().result
         if not (out.success and out.code.value == Code.SUCCESS and abs(out.final_phase - 1.0) < 1e-6):
             problems.append(f"Execute: success {out.success}, code {out.code.value}, final phase "

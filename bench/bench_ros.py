@@ -410,15 +410,17 @@ class Orchestrator:
 SCENARIOS = {"finish": 0.04, "reverse": 0.02, "cancel": 0.35, "preempt": 0.4, "rate": 0.14, "too_fast": 0.05}
 
 
-def _min_duration(preview, limits, config) -> float:
-    """Shortest duration the server accepts for a handle whose preview was asked on its execution grid
-    (``config.execution_grid_points`` phases): the velocity check of plan_execution on the same
-    trajectory (execution.plan.ExecutionReference's differences, the joints matched by name)."""
+def min_duration(preview, limits, config, periodic: bool = False) -> float:
+    """Shortest duration the server accepts for a handle whose preview (deepprompt_msgs/Preview) was
+    asked on its execution grid (``config.execution_grid_points`` phases): the velocity check of
+    plan_execution on the same trajectory (execution.plan.ExecutionReference's differences, the joints
+    matched by name). A coarser preview (at least 3 phases) gives an estimate, lower by the peaks its
+    grid misses. ``periodic``: a rhythmic primitive's preview."""
     from deepprompt_ros.execution.plan import ExecutionReference
 
     mean = np.array(preview.mean, dtype=float).reshape(preview.n_points, preview.n_joints)
     v_max = dict(zip(limits.names, limits.max_velocity))
-    speed = ExecutionReference(mean, False, config.derivative_step).max_speed_per_phase()
+    speed = ExecutionReference(mean, periodic, config.derivative_step).max_speed_per_phase()
     return float(max(sp / v_max[name] for sp, name in zip(speed, preview.joint_names)))
 
 
@@ -486,7 +488,7 @@ def random_executions(orch, rng, n: int, home, limits, config) -> dict:
                 raise RuntimeError(f"Blend failed: {b.message}")
             handle, preview = b.handle, b.preview
         last_handle = r.handle
-        t_min = _min_duration(preview, limits, config)
+        t_min = min_duration(preview, limits, config)
         duration = 0.5 * t_min if kind == "too_fast" else t_min * float(rng.uniform(1.3, 1.6))
         ex = _Execution(kind, expect.get(kind, RC.SUCCESS), duration)
         ex.gh, ex.fut = orch.send(handle, duration, reverse=kind == "reverse", feedback=ex.feedback)
@@ -753,11 +755,17 @@ def measure(args, env, tmp: pathlib.Path, prim_file: pathlib.Path, spec, limits,
         for g in (g_sub, g_cli, g_sub2, g_ref):
             wait_ready(g)
         rng = np.random.default_rng(0)
-        r = orch.condition(_condition_request(rng, spec.home))
+        # a random context and no via-point: random via-points can take a reach that follows them exactly
+        # outside the position limits (refused), and this execution must stream
+        req = _condition_request(rng, spec.home, 0)
+        req.preview_points = server_config.execution_grid_points
+        r = orch.condition(req)
         assert r.success, r.message
         go(g_sub)
         go(g_ref)
-        gh, res_fut = orch.send(r.handle, stream_s + 1.5)
+        # long enough for the stream's measurement, and at most 1/1.3 of the speed the limits allow
+        duration = max(stream_s + 1.5, 1.3 * min_duration(r.preview, limits, server_config))
+        gh, res_fut = orch.send(r.handle, duration)
         orch.c.spin_for(0.5)
         roles = {"sim_bridge": procs[0], "server": server, "subscriber": sub, "client": cli, "reference_loop": ref}
         child = re.findall(r"control loop running in its own process \(pid (\d+)\)", server.output())
@@ -773,7 +781,7 @@ def measure(args, env, tmp: pathlib.Path, prim_file: pathlib.Path, spec, limits,
         cpu["orchestrator"] = (cpu_seconds() - cpu0["orchestrator"]) / wall
         if args.quick:  # enough stream measured: brake now (also exercises cancel)
             gh.cancel_goal_async()
-        res = orch.wait(res_fut, stream_s + 30)
+        res = orch.wait(res_fut, duration + 30)
         go(g_sub, "stop")
         go(g_ref, "stop")
         stream = _load(tmp / "stream.npz", sub, 60)
