@@ -49,6 +49,10 @@ def main(argv=None) -> int:
         raise SystemExit(128 + signum)
 
     signal.signal(signal.SIGTERM, _terminate)
+    # Ctrl-C / SIGINT stops the nodes even when this process was started with SIGINT ignored (a background
+    # job of a non-interactive shell, or a parent that ignores it, passes SIG_IGN on, and Python then
+    # installs no KeyboardInterrupt handler); the nodes, started after this, get SIGINT's default back
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         for node in nodes:
             try:

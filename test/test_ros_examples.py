@@ -67,6 +67,11 @@ rclpy.try_shutdown()
 '''
 
 
+#: `python -m deepprompt_ros.run_main` exec'd with SIGINT ignored (SIG_IGN survives exec)
+RUN_MAIN_SIGINT_IGNORED = ("import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "
+                           "os.execv(sys.executable, [sys.executable, '-m', 'deepprompt_ros.run_main'])")
+
+
 def readme_block(readme: str, heading: str) -> str:
     """The first fenced ``python`` block after the line ``heading`` of README.md."""
     after = readme.split(f"\n{heading}\n", 1)
@@ -81,7 +86,9 @@ def make_run(tmp_path_factory):
     """`make run`'s nodes, up and serving; yields the isolated environment they run in."""
     tmp = tmp_path_factory.mktemp("make_run")
     env = isolated_ros_env(tmp / "log")
-    run = NodeProcess([sys.executable, "-m", "deepprompt_ros.run_main"], env, tmp / "run.log")
+    # started with SIGINT ignored, as a background job of a non-interactive shell (`make run &` in a script)
+    # starts it: Ctrl-C (the SIGINT of run.stop) must stop it all the same
+    run = NodeProcess([sys.executable, "-c", RUN_MAIN_SIGINT_IGNORED], env, tmp / "run.log")
     try:
         with RosTestClient(env) as client:  # the server is up: the examples' own 20-30 s waits then suffice
             assert client.wait_for_service(ListPrimitives, "/primitive_server/list_primitives", 120.0), \
