@@ -12,8 +12,8 @@ serving the shipped ``models/gen3_lite_reach.safetensors`` as ``reach`` and an u
 Each client (its own process and DDS participant, seeded with ``--seed`` and its index) sends its
 share of the requests one after the other, as fast as they are answered, over every service
 (Condition, Blend, Sample, ListPrimitives, SetPhaseRate) and the Execute action (goals that run,
-are left to be preempted by the next goal of any client, or are canceled, at once or later, and
-cancels of finished goals). About a third of the requests are well formed (they give the handles
+are left to be preempted by the next goal of any client, have their phase rate changed, or are
+canceled, at once or later, and cancels of finished goals). About a third of the requests are well formed (they give the handles
 the others use); the rest break one or more fields: NaN / inf / huge / subnormal values, wrong
 lengths, empty and 10 000-element arrays, phases outside [0, 1], unknown primitives and handles,
 4-billion counts (uint32 max), images of the wrong size, step, data length and encoding, joint
@@ -146,6 +146,10 @@ class Factory:
     answer carried, else its primitive's prior): a well-formed duration or phase rate is 1.2-3 times
     slower than that, so such goals are mostly executable (a coarse preview misses some peaks); a
     broken one may be twice too fast (refused: LIMIT_VIOLATION), out of range or contradictory.
+    SetPhaseRate is relative to the handle the client names (the one of its goals it believes is
+    running, see Client.call; another client's goal may have preempted it): a well-formed rate is 0
+    (hold) or, either way, 0.1-1 times the largest rate that handle's shortest duration allows; a
+    broken one is twice that (refused: LIMIT_VIOLATION) or not a usable number.
     """
 
     P_VALID = 0.35   # share of requests built without breaking any field
@@ -222,13 +226,14 @@ class Factory:
         return int(self._pick(good))
 
     def remember(self, primitive: str, handle: str, duration: float | None = None) -> None:
-        """Keep ``handle`` of ``primitive`` for later requests; ``duration``: its shortest (s), if known."""
+        """Keep ``handle`` of ``primitive`` for later requests; ``duration``: its shortest (s), if known (0,
+        a preview that does not move, tells nothing of the motion between its phases: not kept)."""
         if handle:
             self.handles[primitive].append(handle)
             for gone in self.handles[primitive][:-64]:
                 self.durations.pop(gone, None)
             del self.handles[primitive][:-64]
-            if duration is not None:
+            if duration is not None and duration > 0:
                 self.durations[handle] = float(duration)
 
     def shortest_duration(self, handle: str) -> float:
@@ -436,13 +441,22 @@ class Factory:
         return req, self._note()
 
     # -- SetPhaseRate ------------------------------------------------------------------------------
-    def set_phase_rate(self):
+    def set_phase_rate(self, running: str | None = None):
+        """``running``: the handle of the goal whose rate is to change (None: the slowest prior's)."""
         from deepprompt_msgs.srv import SetPhaseRate
 
         self._start()
-        rate = float(self._pick((0.0, 0.1, 0.3, 0.5, 1.0, -0.3, 2.0)))
+        shortest = self.shortest_duration(running) if running is not None else max(self.prior_durations.values())
+        if self.rng.random() < 0.1:
+            rate = 0.0  # hold the phase
+        else:  # backward a quarter of the time
+            rate = float(self.rng.uniform(0.1, 1.0)) / shortest * (-1.0 if self.rng.random() < 0.25 else 1.0)
         if self._break("phase_rate", 0.6):
-            rate = float(self._bad("phase_rate", BAD_FLOATS + (101.0, -101.0, 100.0, -100.0)))
+            if self.rng.random() < 0.2:
+                rate = 2.0 / shortest * (-1.0 if self.rng.random() < 0.25 else 1.0)
+                self._notes.append(f"phase_rate={rate:.3g} (twice too fast)")
+            else:
+                rate = float(self._bad("phase_rate", BAD_FLOATS + (101.0, -101.0, 100.0, -100.0)))
         return SetPhaseRate.Request(phase_rate=rate), self._note()
 
     # -- Execute -----------------------------------------------------------------------------------
@@ -522,6 +536,7 @@ class Client:
         self.finished: list = []         # goal handles whose result arrived (for cancels of finished goals)
         self.factory: Factory | None = None
         self.primitives: dict = {}       # name -> deepprompt_msgs/PrimitiveInfo (ready)
+        self.last_goal_handle: str | None = None  # the handle of this client's latest goal
         self.limits = None               # the Gen3 lite's JointLimits under the default ServerConfig (ready)
 
     def ready(self, timeout: float) -> bool:
@@ -602,7 +617,8 @@ class Client:
     def call(self, kind: str) -> None:
         f = self.factory
         build = {"condition": f.condition, "blend": f.blend, "sample": f.sample,
-                 "list_primitives": lambda: (None, ""), "set_phase_rate": f.set_phase_rate}[kind]
+                 "list_primitives": lambda: (None, ""),
+                 "set_phase_rate": lambda: f.set_phase_rate(self.running_handle())}[kind]
         req, note = build()
         t0 = time.perf_counter()
         try:
@@ -616,8 +632,15 @@ class Client:
             primitive = req.primitive if kind == "condition" else req.handle_a.split("-", 1)[0]
             f.remember(primitive, res.handle, self.shortest_duration(primitive, res.preview))
 
+    def running_handle(self) -> str | None:
+        """The handle of this client's latest goal whose result has not come (else of its latest goal;
+        None before the first)."""
+        running = [g for g in self.goals if not g["fut"].done()]
+        return running[-1]["handle"] if running else self.last_goal_handle
+
     def send_goal(self) -> None:
         goal, note = self.factory.goal()
+        self.last_goal_handle = goal.handle
         t0 = time.perf_counter()
         fut = self.ac.send_goal_async(goal)
         if not self.c.wait_for(fut.done, self.timeout):
@@ -629,13 +652,16 @@ class Client:
             self._record("goal", note, "no_message", t0, message="goal rejected (a rejection carries no message)")
             return
         self.goals.append(dict(gh=gh, fut=gh.get_result_async(), note=note, t0=t0, accept_s=accept_s, wall=time.time(),
-                               cancel_sent=None))
+                               cancel_sent=None, handle=goal.handle))
         r = self.rng.random()
         if r < 0.15:  # cancel at once
             self.cancel(self.goals[-1])
         elif r < 0.3:  # let it run a little, then cancel
             self.c.spin_for(float(self.rng.uniform(0.05, 0.5)))
             self.cancel(self.goals[-1])
+        elif r < 0.45:  # let it run a little, then change its rate (a request of its own)
+            self.c.spin_for(float(self.rng.uniform(0.05, 0.5)))
+            self.call("set_phase_rate")
 
     def cancel(self, entry=None) -> None:
         """Cancel one of this client's goals (running or, sometimes, already finished)."""

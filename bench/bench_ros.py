@@ -60,7 +60,8 @@ ratios):
   expects (SUCCESS, CANCELED or PREEMPTED), and goals sent to be refused (too fast for the velocity
   limits; ``executions_refused_ok`` of them were, with LIMIT_VIOLATION). executions_ok =
   executions - executions_expected_refused when every execution ended as expected
-  (``exec_unexpected`` lists the others by scenario and code);
+  (``exec_unexpected`` lists the others by scenario and code); ``exec_duration_p50_s``,
+  ``exec_duration_max_s`` -- their goals' durations (1.3-1.6 times the shortest each handle allows);
 * ``limit_violations`` -- every joint_command of both phases checked against the limits, each
   against the one received before it, across gaps too (limit_check: positions, velocities,
   accelerations and jerks from consecutive commands, a gap of k periods allowing k periods of
@@ -273,10 +274,23 @@ def _decode_joint_states(records: list, width: int = 6) -> tuple[np.ndarray, np.
     return stamp, q, qd
 
 
+#: where the 'object' contexts are drawn (x, y, z ranges in m, base frame): the box of the shipped reach's
+#: demonstrations (sim.tasks.kinematic_reach.reach_demos), the objects a planner asks it to reach
+OBJECT_BOX = ((0.25, 0.45), (-0.2, 0.2), (0.02, 0.15))
+
+
+def _random_context(rng):
+    """An 'object' context (deepprompt_msgs/Context) uniform in :data:`OBJECT_BOX`."""
+    from deepprompt_msgs.msg import Context
+
+    return Context(modality="object", values=[float(rng.uniform(lo, hi)) for lo, hi in OBJECT_BOX])
+
+
 def _condition_request(rng, home, n_via: int = 5):
     """Condition 'reach' on ``n_via`` random via-points near ``home`` (N(0, 0.05) rad per joint, phases
-    U(0, 1)) and a random 'object' context U(-0.3, 0.3)³; a 100-point preview."""
-    from deepprompt_msgs.msg import Context
+    U(0, 1)) and a random context (:func:`_random_context`); a 100-point preview. The client's timed
+    request (the cost of conditioning does not depend on where the via-points are: its handle is never
+    executed) and, with no via-point, phase 1's execution."""
     from deepprompt_msgs.srv import Condition
 
     from deepprompt_ros.ros import conversions as conv
@@ -284,8 +298,7 @@ def _condition_request(rng, home, n_via: int = 5):
     x = np.sort(rng.uniform(0, 1, n_via))
     y = home + rng.normal(0, 0.05, (n_via, 6))
     return Condition.Request(primitive="reach", via_points=conv.via_points_to_msgs(x, y),
-                             contexts=[Context(modality="object", values=rng.uniform(-0.3, 0.3, 3).tolist())],
-                             preview_points=100)
+                             contexts=[_random_context(rng)], preview_points=100)
 
 
 CALL_PERIOD = 0.04  # s between the starts of two Condition calls (25 calls/s, a busy planner)
@@ -441,14 +454,58 @@ class _Execution:
         return self.phase is not None and abs(self.phase - start) > 1e-9
 
 
-def random_executions(orch, rng, n: int, home, limits, config) -> dict:
+#: a planner's via-points in phase 2 (planner_request): at most this many per request
+PLANNER_MAX_VIA = 3
+#: ... each at least this far (rad) inside the position limits
+PLANNER_VIA_MARGIN = 0.05
+
+
+def planner_request(orch, rng, limits, config):
+    """A Condition request as a planner makes one to adapt the motion it is about to execute: a random
+    context (:func:`_random_context`) and 1-:data:`PLANNER_MAX_VIA` via-points near the motion that
+    context gives, asked of the server first (Condition with the context alone, a 101-point preview).
+
+    Each via-point is at a random phase inside its own n-th of [0.05, 0.95] (its middle half: the
+    via-points are well apart, as a planner's waypoints are) and is the context's mean there plus
+    N(0, std²) per joint (std: the preview's at that phase, the spread the primitive itself gives the
+    motion), at least :data:`PLANNER_VIA_MARGIN` rad inside the position limits. The offsets follow
+    the primitive's own spread, not a fixed size: the served reach meets via-points exactly (its
+    linear latent block is conditioned exactly), and given its context its spread is a few mrad, so a
+    via-point a few 0.01 rad off is met with a detour that needs tens of seconds at the velocity limits.
+
+    Returns the request (context and via-points, a preview on the execution grid: the shortest
+    duration the server accepts, exactly)."""
+    from deepprompt_msgs.srv import Condition
+
+    from deepprompt_ros.ros import conversions as conv
+
+    context = _random_context(rng)
+    r = orch.condition(Condition.Request(primitive="reach", contexts=[context], preview_points=101))
+    if not r.success:
+        raise RuntimeError(f"Condition with a context alone failed: {r.message}")
+    prev = conv.preview_from_msg(r.preview)
+    n = int(rng.integers(1, PLANNER_MAX_VIA + 1))
+    edges = np.linspace(0.05, 0.95, n + 1)
+    x = edges[:-1] + (edges[1:] - edges[:-1]) * rng.uniform(0.25, 0.75, n)
+    mean = np.stack([np.interp(x, prev.phases, prev.mean[:, j]) for j in range(prev.mean.shape[1])], axis=1)
+    std = np.stack([np.interp(x, prev.phases, prev.std[:, j]) for j in range(prev.std.shape[1])], axis=1)
+    index = [list(limits.names).index(name) for name in prev.joint_names]  # the preview's (model's) order
+    y = np.clip(mean + rng.standard_normal(mean.shape) * std, limits.lower[index] + PLANNER_VIA_MARGIN,
+                limits.upper[index] - PLANNER_VIA_MARGIN)
+    return Condition.Request(primitive="reach", via_points=conv.via_points_to_msgs(x, y), contexts=[context],
+                             preview_points=config.execution_grid_points)
+
+
+def random_executions(orch, rng, n: int, limits, config) -> dict:
     """``n`` random executions, one after the other (a preempting goal is the next execution), each
-    conditioned on 1-5 random via-points and a random context, a quarter of them blended with the
-    previous handle (Blend, linear hand-over); scenarios from SCENARIOS. Returns the figures:
-    executions, executions_ok (ended with the code their scenario expects, SUCCESS / CANCELED /
-    PREEMPTED), executions_expected_refused (too_fast), executions_refused_ok (of those, refused
-    with LIMIT_VIOLATION), exec_unexpected (scenario:code counts of the others), exec_codes (all
-    result codes), set_rate_codes (SetPhaseRate responses), exec_wall_s."""
+    conditioned as a planner conditions (:func:`planner_request`: a random context and 1-3 via-points
+    near the motion it gives), a quarter of them blended with the previous handle (Blend, linear
+    hand-over); scenarios from SCENARIOS, durations 1.3-1.6 times the shortest the handle's preview
+    allows. Returns the figures: executions, executions_ok (ended with the code their scenario
+    expects, SUCCESS / CANCELED / PREEMPTED), executions_expected_refused (too_fast),
+    executions_refused_ok (of those, refused with LIMIT_VIOLATION), exec_unexpected (scenario:code
+    counts of the others), exec_codes (all result codes), set_rate_codes (SetPhaseRate responses),
+    exec_duration_p50_s / exec_duration_max_s (of the goals not sent too fast), exec_wall_s."""
     from deepprompt_msgs.msg import ResultCode as RC
 
     kinds, probs = list(SCENARIOS), np.array(list(SCENARIOS.values()))
@@ -476,9 +533,7 @@ def random_executions(orch, rng, n: int, home, limits, config) -> dict:
         if kind == "preempt" and i == n - 1:
             kind = "cancel"  # the last execution has no successor
         # the preview on the execution grid: the shortest duration the server accepts, exactly
-        req = _condition_request(rng, home, int(rng.integers(1, 6)))
-        req.preview_points = config.execution_grid_points
-        r = orch.condition(req)
+        r = orch.condition(planner_request(orch, rng, limits, config))
         if not r.success:
             raise RuntimeError(f"Condition failed: {r.message}")
         handle, preview = r.handle, r.preview
@@ -533,11 +588,13 @@ def random_executions(orch, rng, n: int, home, limits, config) -> dict:
     for ex in done:
         if ex.code != ex.expected:
             count(unexpected, f"{ex.kind}:{ex.code}")
+    durations = [ex.duration for ex in done if ex.kind != "too_fast"] or [float("nan")]
     return dict(executions=len(done), executions_ok=len(ok), executions_expected_refused=len(refused),
                 executions_refused_ok=len(refused_ok), executions_unexpected=len(done) - len(ok) - len(refused_ok),
                 exec_unexpected=json.dumps(unexpected, sort_keys=True).replace(" ", ""),
                 exec_codes=json.dumps(codes, sort_keys=True).replace(" ", ""),
                 set_rate_codes=json.dumps(rate_codes, sort_keys=True).replace(" ", ""),
+                exec_duration_p50_s=float(np.median(durations)), exec_duration_max_s=float(np.max(durations)),
                 exec_wall_s=time.monotonic() - t0)
 
 
@@ -815,7 +872,7 @@ def measure(args, env, tmp: pathlib.Path, prim_file: pathlib.Path, spec, limits,
 
         # ---- phase 2: random executions; the second subscriber records commands and joint states
         go(g_sub2)
-        metrics.update(random_executions(orch, rng, n_exec, spec.home, limits, server_config))
+        metrics.update(random_executions(orch, rng, n_exec, limits, server_config))
         orch.c.spin_for(0.5)
         go(g_sub2, "stop")
         # another run's nodes in this domain (drawn at random; seen after each phase) make every figure suspect
