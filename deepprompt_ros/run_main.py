@@ -1,5 +1,6 @@
 """`make run`: the simulated arm (sim_bridge; the Gen3 lite by default) and primitive_server with the
-robot's shipped primitives, ready for service calls (see README). Ctrl-C stops the nodes.
+robot's shipped primitives, ready for service calls (see README). Ctrl-C stops the nodes (SIGINT, even
+when this process was started with it ignored); a SIGKILL of this process stops them too (SIGTERM).
 
 The nodes and their parameters are those of ``ros2 launch deepprompt_ros demo.launch.py``: both
 come from :mod:`deepprompt_ros.bringup` (launch ``demo``), and the options below are its launch
@@ -11,6 +12,7 @@ skipped with one line saying so.
 from __future__ import annotations
 
 import argparse
+import ctypes
 import os
 import signal
 import subprocess
@@ -32,6 +34,16 @@ def parser() -> argparse.ArgumentParser:
         ap.add_argument("--" + spec.name.replace("_", "-"), dest=spec.name, default=bringup.argument_text(spec),
                         help=spec.description + unit)
     return ap
+
+
+def _stop_with(parent_pid: int):
+    """A Popen ``preexec_fn``: the node gets SIGTERM when ``parent_pid`` (this process) ends without
+    stopping it (SIGKILL; Linux PR_SET_PDEATHSIG, kept across exec), not left running on its own."""
+    def preexec() -> None:
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM), 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
+        if os.getppid() != parent_pid:  # the parent ended before the prctl
+            os.kill(os.getpid(), signal.SIGTERM)
+    return preexec
 
 
 def main(argv=None) -> int:
@@ -63,7 +75,8 @@ def main(argv=None) -> int:
                 print(f"[run] {node.name} skipped: {exc}; {node.optional}", flush=True)
                 continue
             node_env = {**env, **dict(node.environment)}
-            procs[node.name] = subprocess.Popen(cmd, env=node_env, start_new_session=True)
+            procs[node.name] = subprocess.Popen(cmd, env=node_env, start_new_session=True,
+                                                preexec_fn=_stop_with(os.getpid()))
             print(f"[run] started {node.name} (pid {procs[node.name].pid})", flush=True)
         print("[run] ready for service calls, e.g. `.venv/bin/python examples/planner_client.py`; Ctrl-C to stop",
               flush=True)

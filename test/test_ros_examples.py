@@ -125,3 +125,36 @@ def test_readme_planner_snippet_runs_as_written(make_run, repo_root, tmp_path):
     match = re.search(r"condition success=True reachable=True refine_max_error=(\S+)", out)
     assert match and float(match[1]) <= 1e-6, out
     assert "goal accepted=True" in out and "execute success=True code=0" in out, out
+
+
+def test_run_main_killed_leaves_no_node_running(tmp_path):
+    """A SIGKILL of run_main (no chance to stop its nodes, each in a session of its own) ends its nodes
+    too: they are not left running, loading the machine, with nothing to stop them."""
+    import os
+    import signal
+    import time
+
+    env = isolated_ros_env(tmp_path / "log")
+    run = NodeProcess([sys.executable, "-m", "deepprompt_ros.run_main"], env, tmp_path / "run.log")
+    try:
+        end = time.monotonic() + 60
+        while "[run] ready" not in run.output() and time.monotonic() < end:
+            time.sleep(0.1)
+        pids = [int(p) for p in re.findall(r"\[run\] started \S+ \(pid (\d+)\)", run.output())]
+        assert len(pids) >= 2, run.output_tail()  # sim_bridge and primitive_server
+        os.kill(run.pid, signal.SIGKILL)
+        end = time.monotonic() + 20
+        while any(_running(p) for p in pids) and time.monotonic() < end:
+            time.sleep(0.1)
+        assert not [p for p in pids if _running(p)], run.output_tail()
+    finally:
+        run.stop()
+
+
+def _running(pid: int) -> bool:
+    """``pid`` exists and is not a zombie (an ended node whose parent has not reaped it yet)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] not in ("Z", "X")
+    except OSError:
+        return False
