@@ -13,6 +13,7 @@ from deepprompt_ros.data.synthetic import bimodal_sine
 from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
 from deepprompt_ros.model.phase import phase_basis
 from deepprompt_ros.primitive.deep_promp import DeepProMP
+from deepprompt_ros.primitive.latent import PLANNER_VIA_NOISE
 from deepprompt_ros.training.basis import (CV_VIA_NOISES, cv_basis_hyperparameters, cv_score, cv_via_sets,
                                            fold_assignment, init_basis_pca, pca_basis)
 from deepprompt_ros.training.config import TrainConfig
@@ -116,7 +117,7 @@ def test_the_linear_part_is_chosen_on_the_training_demos_with_a_nonlinear_block_
     ds = smooth_demos(12, seed=2)
     cfg = TrainConfig(n_points=T, latent_nonlinear=6, seed=3, cv_folds=4)
     out, rec = select_linear_part(ds, cfg, 3)
-    cv = cv_basis_hyperparameters(ds, T, folds=4, seed=3)  # the defaults: the AUTO_* grids
+    cv = cv_basis_hyperparameters(ds, T, folds=4, seed=3, structure_noise=PLANNER_VIA_NOISE)  # the AUTO_* grids
     assert {k: getattr(out, k) for k in ("decoder_basis", "latent_linear", "basis_cov_reg", "basis_cov_reg_units",
                                          "via_noise")} == {k: cv[k] for k in ("decoder_basis", "latent_linear",
                                                                              "basis_cov_reg", "basis_cov_reg_units",
@@ -124,6 +125,13 @@ def test_the_linear_part_is_chosen_on_the_training_demos_with_a_nonlinear_block_
     assert out.latent_dim == out.latent_linear + 6 and out.basis_init == "pca" and out.basis_lr_scale == 0.0
     assert rec["cross_validation"]["table"] == cv["table"] and rec["latent_dim"] == out.latent_dim
     assert {r[4] for r in cv["table"]} == set(CV_VIA_NOISES)
+    # the structure is chosen with the via-points met as a planner's (its row at PLANNER_VIA_NOISE), the
+    # model's noise is then the best soft one of that structure
+    structure = cv["structure"]["row"]
+    assert cv["structure"]["noise"] == PLANNER_VIA_NOISE and structure[4] == PLANNER_VIA_NOISE
+    assert tuple(structure[:4]) == (out.decoder_basis, out.latent_linear, out.basis_cov_reg, out.basis_cov_reg_units)
+    same = [r for r in cv["table"] if tuple(r[:4]) == tuple(structure[:4])]
+    assert len(same) == len(CV_VIA_NOISES) and out.via_noise == min(same, key=lambda r: r[5])[4]
     few, rec = select_linear_part(smooth_demos(2), cfg, 3)
     assert "too few to cross-validate" in rec["method"] and few.latent_linear == few.decoder_basis * 3
     ModelConfig(n_joints=3, latent_dim=few.latent_dim, decoder_basis=few.decoder_basis,

@@ -5,6 +5,7 @@ numpy float64 except :func:`init_basis_pca`, which writes into the network.
 """
 from __future__ import annotations
 
+import math
 from typing import Sequence
 
 import numpy as np
@@ -171,7 +172,8 @@ def cv_basis_hyperparameters(ds: DemoDataset, n_points: int, decoder_bases: Sequ
                              cov_regs: Sequence[float] = AUTO_COV_REGS, via_noises: Sequence[float] = CV_VIA_NOISES,
                              cov_reg_units: Sequence[str] = BASIS_COV_REG_UNITS, n_via: int = 5, folds: int = 5,
                              draws: int = 2, seed: int = 0, reach_via_points: int = 5,
-                             reference: tuple[int, str] | None = PROMP_FORM) -> dict:
+                             reference: tuple[int, str] | None = PROMP_FORM,
+                             structure_noise: float | None = None) -> dict:
     """Choose the linear part Φ(x)(b + A z_lin) of a decoder — basis functions per joint n_b
     (``decoder_basis``), linear latent size k_l (``latent_linear``), PPCA regularizer λ
     (``basis_cov_reg``) and its units (``basis_cov_reg_units``), via-point noise (``via_noise``,
@@ -193,6 +195,13 @@ def cv_basis_hyperparameters(ds: DemoDataset, n_points: int, decoder_bases: Sequ
     demo) is lower by more than one standard error of the paired difference (the one-standard-error
     rule of :func:`deepprompt_ros.training.selection.keep_residual`); small differences on the
     cross-validation's few demos do not carry to other demos.
+
+    ``structure_noise``: when given, the structure (n_b, k_l, λ, units) is chosen by its score with
+    the via-points conditioned at that noise (the reference rule included) — the noise the linear part
+    will be conditioned with at deployment (a planner's via-points, met exactly) — and ``via_noise`` is
+    then the best of ``via_noises`` for that structure. A structure chosen at a soft noise can be far
+    off when the via-points are met exactly (the basis's approximation error is then interpolated,
+    not smoothed). ``structure_noise`` is not in the returned table's noises.
 
     Returns {"decoder_basis", "latent_linear", "basis_cov_reg", "basis_cov_reg_units", "via_noise",
     "cv_mse", "cv_mse_parts" (per conditioning of :data:`CV_CONDITIONINGS`), "folds", "draws", "n_demos",
@@ -219,7 +228,10 @@ def cv_basis_hyperparameters(ds: DemoDataset, n_points: int, decoder_bases: Sequ
     y_all = np.stack([d.resampled(n_points) for d in demos])  # (n, T, d) rad
     d = y_all.shape[2]
     sets = cv_via_sets(n_points, n, n_via, draws, seed)
-    noise2 = np.asarray(via_noises, dtype=np.float64) ** 2  # (S,)
+    if structure_noise is not None and not (math.isfinite(structure_noise) and structure_noise > 0):
+        raise ValueError(f"structure_noise must be a finite noise > 0 or None, got {structure_noise!r}")
+    noises = tuple(float(v) for v in via_noises) + ((float(structure_noise),) if structure_noise is not None else ())
+    noise2 = np.asarray(noises, dtype=np.float64) ** 2  # (S,): the grid's noises, then the structure's
     units = tuple(dict.fromkeys(cov_reg_units))
     ks_of = {nb: sorted({int(k) for k in latent_linears if max(1, reach_via_points * d) <= int(k) < nb * d}
                         | {nb * d}) for nb in bases}
@@ -240,16 +252,18 @@ def cv_basis_hyperparameters(ds: DemoDataset, n_points: int, decoder_bases: Sequ
                         sel = np.stack([sets[i][j] for i in te])  # (B, V)
                         for k, e in zip(ks, _conditioned_errors(phi, mean, a, ks, sel, yn[te], std, noise2)):
                             err[(nb, k, float(c), u)][te, j] = e
-    table, per_demo = [], {}
+    table, structure_table, per_demo = [], [], {}
     for (nb, k, c, u), e in err.items():
-        for s, v in enumerate(via_noises):
+        for s, v in enumerate(noises):
             score, parts = cv_score(e[:, :, s])
-            table.append([nb, k, c, u, float(v), score, *parts])
-            per_demo[(nb, k, c, u, float(v))] = _log_scores(e[:, :, s])
-    best = min(table, key=lambda r: r[5])
+            row = [nb, k, c, u, v, score, *parts]
+            (table if s < len(via_noises) else structure_table).append(row)
+            per_demo[(nb, k, c, u, v)] = _log_scores(e[:, :, s])
+    ranked = structure_table if structure_noise is not None else table
+    best = min(ranked, key=lambda r: r[5])
     out = {"folds": folds, "draws": draws, "n_demos": n, "table": table}
-    ref_rows = [r for r in table if reference is not None and (r[0], r[1], r[3]) == (reference[0], reference[0] * d,
-                                                                                      reference[1])]
+    ref_rows = [r for r in ranked if reference is not None and (r[0], r[1], r[3]) == (reference[0], reference[0] * d,
+                                                                                       reference[1])]
     if ref_rows:  # the best grid point replaces the best ProMP-form one only beyond one standard error
         ref = min(ref_rows, key=lambda r: r[5])
         diff = per_demo[tuple(best[:5])] - per_demo[tuple(ref[:5])]
@@ -257,6 +271,9 @@ def cv_basis_hyperparameters(ds: DemoDataset, n_points: int, decoder_bases: Sequ
         out["reference"] = {"row": ref, "log_difference": float(diff.mean()), "standard_error": se,
                             "best_row": best, "best_kept": bool(diff.mean() + se < 0)}
         best = best if diff.mean() + se < 0 else ref
+    if structure_noise is not None:  # the structure as chosen at structure_noise; its best soft noise
+        out["structure"] = {"noise": float(structure_noise), "row": best}
+        best = min((r for r in table if tuple(r[:4]) == tuple(best[:4])), key=lambda r: r[5])
     return {"decoder_basis": best[0], "latent_linear": best[1], "basis_cov_reg": best[2],
             "basis_cov_reg_units": best[3], "via_noise": best[4], "cv_mse": best[5], "cv_mse_parts": best[6:], **out}
 

@@ -1,8 +1,10 @@
 """The model selection of ``TrainConfig.auto_select``, made from the training demonstrations alone:
 
 1. :func:`select_linear_part` — the linear part Φ(x)(b + A z_lin) of the decoder (n_b, k_l, the PPCA
-   regularizer and its units, the via-point noise) by cross-validation on the demos the network is
-   trained on (:func:`deepprompt_ros.training.basis.cv_basis_hyperparameters`);
+   regularizer and its units) by cross-validation on the demos the network is trained on, scored with
+   the via-points conditioned as the server conditions a planner's (at
+   :data:`~deepprompt_ros.primitive.latent.PLANNER_VIA_NOISE`, met exactly), then the model's own
+   via-point noise for that structure (:func:`deepprompt_ros.training.basis.cv_basis_hyperparameters`);
 2. :func:`judge_residual` — after training, the MLP residual kept or dropped (``residual_scale`` 0)
    by comparing the model with and without it on the validation demos of the training split (or,
    with ``residual_folds``, on the held-out demos of a cross-validation of the whole training):
@@ -24,6 +26,7 @@ from deepprompt_ros.data.demo_dataset import DemoDataset
 from deepprompt_ros.model.checkpoint import Normalization
 from deepprompt_ros.model.network import DeepProMPNet
 from deepprompt_ros.primitive.deep_promp import DeepProMP
+from deepprompt_ros.primitive.latent import PLANNER_VIA_NOISE
 from deepprompt_ros.training.basis import cv_basis_hyperparameters, fold_assignment
 from deepprompt_ros.training.config import TrainConfig
 
@@ -50,7 +53,7 @@ def select_linear_part(train_ds: DemoDataset, cfg: TrainConfig, n_joints: int) -
     the values, and the cross-validation's result or the reason for the fallback)."""
     if len(train_ds) >= 3:
         cv = cv_basis_hyperparameters(train_ds, cfg.n_points, basis_width=cfg.basis_width, folds=cfg.cv_folds,
-                                      seed=cfg.seed)
+                                      structure_noise=PLANNER_VIA_NOISE, seed=cfg.seed)
         choice = {k: cv[k] for k in _CHOSEN}
         record = {"method": f"{cv['folds']}-fold cross-validation on the {cv['n_demos']} training demonstrations",
                   "cross_validation": cv}
