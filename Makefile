@@ -26,10 +26,11 @@ experiments-quick: setup
 run: setup
 	$(PY) -m deepprompt_ros.run_main
 
-# Train the shipped primitives in models/ (seeded: the same command gives the same file contents).
-# train-shake gives models/wam_shake.safetensors; the reach and sine files were written by an earlier
-# version of the training's subset sampling, so train-reach and train-sine give other weights of the
-# same configurations.
+# Train the shipped primitives in models/ (seeded: the same command gives the same weights and choices;
+# the metadata's creation time and wall time differ). train-reach and train-shake give
+# models/gen3_lite_reach and models/wam_shake; the sine file (the MLP decoder, auto_select off: see its
+# configuration) was written by an earlier version of the training's subset sampling, so train-sine gives
+# other weights of the same configuration.
 TRAIN := $(PY) -m deepprompt_ros.training.cli
 models: train-sine train-reach train-shake
 train-sine: setup
