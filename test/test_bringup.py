@@ -288,7 +288,8 @@ def fake_popen(monkeypatch):
     class FakeProcess:
         pid, returncode = 12345, 0
 
-        def __init__(self, cmd, env, start_new_session):
+        def __init__(self, cmd, env, start_new_session, preexec_fn):
+            assert start_new_session and callable(preexec_fn)  # own group; stopped when run_main dies
             started.append((cmd, env))
 
         def poll(self):
