@@ -433,8 +433,8 @@ def min_duration(preview, limits, config, periodic: bool = False) -> float:
 
     mean = np.array(preview.mean, dtype=float).reshape(preview.n_points, preview.n_joints)
     v_max = dict(zip(limits.names, limits.max_velocity))
-    speed = ExecutionReference(mean, periodic, config.derivative_step).max_speed_per_phase()
-    return float(max(sp / v_max[name] for sp, name in zip(speed, preview.joint_names)))
+    ref = ExecutionReference(mean, periodic, config.derivative_step)
+    return ref.shortest_duration([v_max[name] for name in preview.joint_names])
 
 
 class _Execution:

@@ -25,10 +25,10 @@ FAST_MARGIN = 1.1
 
 
 def limit_ratios(y: np.ndarray, joint_names) -> np.ndarray:
-    """max_j |y_j'(x)| / v_max,j at each phase of the trajectory ``y`` (N, d), N evenly spaced phases on
-    [0, 1], joints ``joint_names`` (d,), shape (N,): the duration (s) at which it would reach a velocity
-    limit there. Phase derivatives of :class:`~deepprompt_ros.execution.plan.ExecutionReference`, the
-    Gen3 lite's limits under the default ServerConfig (the server's velocity check)."""
+    """The duration (s) at which the trajectory ``y`` (N, d; N evenly spaced phases on [0, 1], joints
+    ``joint_names``) would reach a velocity limit at each phase, shape (N,):
+    :meth:`~deepprompt_ros.execution.plan.ExecutionReference.velocity_limit_ratios` under the Gen3 lite's
+    limits and the default ServerConfig (the server's velocity check)."""
     from deepprompt_ros.execution.plan import ExecutionReference
     from deepprompt_ros.robots.spec import load_robot
     from deepprompt_ros.server.config import ServerConfig, robot_limits
@@ -36,8 +36,8 @@ def limit_ratios(y: np.ndarray, joint_names) -> np.ndarray:
     config = ServerConfig()
     limits = robot_limits(load_robot(ROBOT), config)
     v_max = dict(zip(limits.names, limits.max_velocity))
-    dy = ExecutionReference(np.asarray(y, dtype=np.float64), False, config.derivative_step).dy
-    return np.max(np.abs(dy) / np.array([v_max[name] for name in joint_names]), axis=1)
+    ref = ExecutionReference(np.asarray(y, dtype=np.float64), False, config.derivative_step)
+    return ref.velocity_limit_ratios([v_max[name] for name in joint_names])
 
 
 @dataclasses.dataclass(frozen=True)

@@ -222,3 +222,15 @@ def test_the_control_thread_survives_a_tick_that_raises_and_every_goal_gets_a_re
         assert c.done.wait(10) and c.outcome.code == Code.SUCCESS, c.outcome
     finally:
         run.loop.shutdown()
+
+
+def test_the_shortest_duration_is_where_the_fastest_joint_reaches_its_velocity_limit():
+    # y_0 = sin(πx) has |y'| <= π at x = 0, 1 (0 at x = 0.5); y_1 = 2x has |y'| = 2 everywhere
+    x = np.linspace(0.0, 1.0, 2001)
+    ref = ExecutionReference(np.stack([np.sin(np.pi * x), 2.0 * x], axis=1), periodic=False, h=0.001)
+    v_max = np.array([1.0, 0.5])  # joint 1 needs 2 / 0.5 = 4 s, joint 0 at most π s
+    ratios = ref.velocity_limit_ratios(v_max)
+    assert ratios.shape == (2001,)
+    np.testing.assert_allclose(ratios, np.maximum(np.abs(np.pi * np.cos(np.pi * x)), 4.0), rtol=1e-5, atol=1e-5)
+    assert abs(ref.shortest_duration(v_max) - 4.0) < 1e-9
+    assert abs(ref.shortest_duration([0.5, 4.0]) - 2.0 * np.pi) < 1e-4  # now joint 0's peak decides

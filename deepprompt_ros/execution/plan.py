@@ -99,6 +99,17 @@ class ExecutionReference:
         """max_x |y'(x)| per joint, shape (d,) [rad per unit phase]."""
         return np.abs(self.dy).max(axis=0)
 
+    def velocity_limit_ratios(self, max_velocity) -> np.ndarray:
+        """max_j |y_j'(x)| / v_max,j at each grid phase, shape (N,) [s]: at a duration T a joint moves at
+        |y_j'(x)| / T, so this is the duration below which the executed trajectory would need more than
+        a velocity limit at that phase. ``max_velocity`` (d,), rad/s, in the grid's joint order."""
+        return np.max(np.abs(self.dy) / np.asarray(max_velocity, dtype=np.float64), axis=1)
+
+    def shortest_duration(self, max_velocity) -> float:
+        """The shortest duration (s) at which no joint needs more than its velocity limit
+        ``max_velocity`` (d,), rad/s: the maximum of :meth:`velocity_limit_ratios`."""
+        return float(np.max(self.max_speed_per_phase() / np.asarray(max_velocity, dtype=np.float64)))
+
 
 @dataclasses.dataclass(frozen=True)
 class ExecutionPlan:

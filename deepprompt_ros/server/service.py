@@ -442,7 +442,7 @@ class PrimitiveServerCore:
         over = need > vmax * (1 + 1e-9)
         if over.any():
             j = int(np.argmax(need / vmax))
-            t_min = float(np.max(speed / vmax))
+            t_min = ref.shortest_duration(vmax)
             raise RequestError(Code.LIMIT_VIOLATION, f"at phase rate {abs(rate):.4g} /s (duration "
                                f"{1 / abs(rate):.4g} s) {self.limits.names[j]} would need {need[j]:.3g} rad/s; its "
                                f"velocity limit is {vmax[j]:.3g} rad/s: use a duration >= {t_min:.3g} s "
