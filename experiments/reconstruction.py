@@ -49,15 +49,15 @@ CONDITIONING_LABELS = {"via_point": "Via Point", "image": "Image", "low_dim": "L
 PAPER_CONDITIONINGS = ("via_point", "image", "low_dim", "image+low", "aggregate")
 MODEL_LABELS = {"deepprompt": "DeepProMP", "promp": "ProMP", "cnmp": "CNMP", "vae_cnmp": "VAE-CNMP",
                 "cnmp_indep": "CNMP (Indep)", "vae_cnmp_indep": "VAE-CNMP (Indep)",
-                "deepprompt_paper": "DeepProMP, objective: paper", "promp_full": "ProMP (whole training split)"}
+                "deepprompt_np": "DeepProMP, objective: np", "promp_full": "ProMP (whole training split)"}
 N_VIA_EXTRA = 5
 #: Models that are not in the registry's list, by kind: (class, changes of the training config,
-#: ProMP on bootstrap resamples). ``deepprompt_paper``: DeepProMP trained with the paper's own
-#: objective; ``promp_full``: ProMP fitted on the whole training split (its seed only moves the
-#: folds of its cross-validation), the comparison of the goals.
-VARIANTS = {"deepprompt_paper": (DeepProMPModel, {"objective": "paper"}), "promp_full": (ProMPModel, {})}
+#: ProMP on bootstrap resamples). ``deepprompt_np``: DeepProMP trained with the Neural-Process
+#: objective (``train``'s default is the paper's); ``promp_full``: ProMP fitted on the whole training
+#: split (its seed only moves the folds of its cross-validation), the comparison of the goals.
+VARIANTS = {"deepprompt_np": (DeepProMPModel, {"objective": "np"}), "promp_full": (ProMPModel, {})}
 #: The kinds whose units measure the goals (:func:`goal_metrics.measure`); a DeepProMP unit's ablation too.
-GOAL_KINDS = ("deepprompt", "deepprompt_paper", "promp_full")
+GOAL_KINDS = ("deepprompt", "deepprompt_np", "promp_full")
 
 
 def bootstrap(ds: DemoDataset, seed: int) -> DemoDataset:

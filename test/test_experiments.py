@@ -192,7 +192,7 @@ def test_bimodal_cases_parsed_from_the_bench_script(tiny_run):
 # Goals: one table per goal, read from the reconstruction units
 # ------------------------------------------------------------------------------------------------
 
-GOAL_ROWS = {"deepprompt", "ablation", "deepprompt_paper", "promp_full"}
+GOAL_ROWS = {"deepprompt", "ablation", "deepprompt_np", "promp_full"}
 
 
 def _seed_values(runs, row, get):
@@ -243,7 +243,7 @@ def test_goal_2_compares_with_the_best_other_model(tiny_run):
                                                                       "vae_cnmp_indep")}
         best = t2["gen3_lite_reach"]["best_other"][c]
         assert best["model"] == min(means, key=means.get) and best["mean"] == pytest.approx(min(means.values()))
-        for row in ("deepprompt", "ablation", "deepprompt_paper"):
+        for row in ("deepprompt", "ablation", "deepprompt_np"):
             assert t2["gen3_lite_reach"][row][c]["mean"] == pytest.approx(
                 np.mean(_seed_values(runs, row, lambda r: r["mse"][c])))
 
@@ -277,7 +277,7 @@ def test_goals_3_to_6_count_what_they_claim(tiny_run):
     assert srv["n"] == n_sets and srv["reported_agree"] and t5["shipped"]["promp"]["n"] == n_sets
     # goal 6: a partial via-point leaves the free joints wider than a full one; MAP counts the via-points once
     for task, rows in g["tables"]["goal6"].items():
-        for row in ("deepprompt", "deepprompt_paper"):
+        for row in ("deepprompt", "deepprompt_np"):
             if task != "bimodal_sine":  # one joint: no partial via-point
                 assert rows[row]["partial_over_full"]["mean"] > 1, (task, row)
             assert rows[row]["map_double_count"]["mean"] == pytest.approx(1.0, abs=0.05), (task, row)
@@ -333,8 +333,8 @@ def test_unit_files_and_timings(tiny_run):
     units = _units(out)
     assert set(units) == set(UNIT_EXPERIMENTS)
     # tiny: 6 models x 2 seeds; 3 N x 2 initializations; small data: 1 seed x 2 configurations; goals: the 12
-    # reconstruction units read back + the paper objective and ProMP on the whole split x 2 seeds, DeepProMP, its
-    # paper variant and ProMP on bimodal_sine x 2 seeds and on the small-data demos x 1 seed
+    # reconstruction units read back + the np objective and ProMP on the whole split x 2 seeds, DeepProMP, its
+    # np variant and ProMP on bimodal_sine x 2 seeds and on the small-data demos x 1 seed
     assert {k: (u["units"], u["computed"], u["reused"]) for k, u in units.items()} == {
         "reconstruction": (12, 12, 0), "refinement": (6, 6, 0), "small_data": (2, 2, 0), "goals": (25, 13, 12)}
     files = sorted(p.name for p in (out / "units" / "reconstruction").iterdir())

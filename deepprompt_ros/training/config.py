@@ -74,7 +74,7 @@ class TrainConfig:
     basis_cov_reg_units: str = param("normalized", "units of basis_cov_reg's λI: 'normalized' joint units, or "
                                                    "'raw' (rad, ProMP's regularizer)", choices=BASIS_COV_REG_UNITS)
     # -- objective
-    objective: str = param("np", "'np': Neural-Process form, z from all inputs and β KL(q(z | all) ‖ q(z | "
+    objective: str = param("paper", "'np': Neural-Process form, z from all inputs and β KL(q(z | all) ‖ q(z | "
                                  "subset)); 'paper': the paper's rewritten ELBO, z from the subset and β Σ_i "
                                  "KL(q(z | a_i) ‖ p0)", choices=OBJECTIVES)
     beta: float = param(1.0, "β, the weight of the KL term once annealed", min=0.0)

@@ -3,7 +3,7 @@ the loss, and the held-out validation MSE.
 
 Objectives (``TrainConfig.objective``):
 
-``paper``  the paper's rewritten ELBO: z ~ q(z | subset), reconstruct the whole demonstration,
+``paper``  (the default) the paper's rewritten ELBO: z ~ q(z | subset), reconstruct the whole demonstration,
            plus β Σ_i KL(q(z|a_i) ‖ p0) over the given elements (the "KL of each per-element
            posterior to the prior"). The literal term E_q[log q(z|a_i) − log p0(z)] is unbounded
            below (μ_i far away with small σ_i drives it to −∞: measured −7e14 within 200 updates),
@@ -12,7 +12,8 @@ Objectives (``TrainConfig.objective``):
            β KL(q(z | all) ‖ q(z | subset)). With a subset that cannot tell modes apart, q(z|subset)
            must cover every mode that is consistent with it — the property that keeps conditioned
            samples multimodal (the paper's objective averages the modes instead: EXPERIMENTS.md,
-           section 5 "Bimodal sine").
+           section 5 "Bimodal sine"). On a low-dimensional context it trains a less accurate context
+           encoder than ``paper`` (EXPERIMENTS.md, section 6, goal 2).
 
 Every update sub-samples which inputs are given (:func:`sample_subset_weights`): via-points (a
 random count), each context modality, images, their combinations, and sometimes nothing (the
