@@ -1,7 +1,7 @@
 """The nodes each launch file starts, described once: what ``ros2 launch deepprompt_ros <file>``
 and ``make run`` start.
 
-A launch (one of :data:`LAUNCHES`: ``demo``, ``primitive_server``, ``record``) has arguments, a
+A launch (one of :data:`LAUNCHES`: ``demo``, ``dual_arm``, ``primitive_server``, ``record``) has arguments, a
 frozen dataclass made with :func:`~deepprompt_ros.common.params.param` (name, default,
 description, range), and a function from their values to the nodes to start
 (:class:`NodeDescription`: package, executable, node name, namespace, parameter files, parameters,
@@ -10,6 +10,10 @@ description into a ``launch_ros.actions.Node`` (:meth:`NodeDescription.launch_kw
 (:mod:`deepprompt_ros.run_main`) turns the demo's into command lines
 (:meth:`NodeDescription.command`). Argument values arrive as strings (as a launch file gets them)
 and are checked here. No rclpy or launch import.
+
+Several robots: each robot's nodes run under a namespace of their own (every topic, service, the
+Execute action and the JointTrajectory command topic follow it); ``dual_arm`` is the demo twice, in
+two namespaces, and only its first arm's sim_bridge publishes ``/clock`` (the one global topic).
 
 The primitives the server serves follow the robot (:data:`ROBOT_PRIMITIVES`), and the demo and
 record launches add robot_state_publisher with the robot's URDF (TF for RViz) as an optional node:
@@ -27,7 +31,7 @@ from typing import Any, Callable, Mapping, NamedTuple
 from deepprompt_ros.common.params import ConfigError, ParamSpec, from_mapping, param, specs_of
 from deepprompt_ros.paths import PACKAGE, find_data_file
 
-__all__ = ["NodeDescription", "Launch", "LAUNCHES", "DemoArguments", "PrimitiveServerArguments",
+__all__ = ["NodeDescription", "Launch", "LAUNCHES", "DemoArguments", "DualArmArguments", "PrimitiveServerArguments",
            "RecordArguments", "EXECUTABLES", "ROBOT_PRIMITIVES", "arguments", "argument_text",
            "launch_argument_kwargs", "parse_arguments", "nodes", "find_executable", "primitives_file"]
 
@@ -250,6 +254,20 @@ class DemoArguments:
 
 
 @dataclasses.dataclass(frozen=True)
+class DualArmArguments:
+    """Arguments of ``dual_arm.launch.py`` and ``make run-dual``: two simulated arms, each with the demo's
+    nodes under its own namespace."""
+
+    left_robot: str = param("gen3_lite", "robot of the first arm (as the demo's robot)")
+    right_robot: str = param("wam", "robot of the second arm (as the demo's robot)")
+    left_namespace: str = param("left_arm", "namespace of the first arm's nodes; its sim_bridge publishes /clock")
+    right_namespace: str = param("right_arm", "namespace of the second arm's nodes (publish_clock false)")
+    real_time_factor: float = param(1.0, "sim_bridge real_time_factor of both arms", min=0.0, max=100.0)
+    stale_timeout: float = param(1.0, "primitive_server stale_timeout of both servers (as the demo's)",
+                                 min=0.001, max=60.0, unit="s")
+
+
+@dataclasses.dataclass(frozen=True)
 class PrimitiveServerArguments:
     """Arguments of ``primitive_server.launch.py`` (the server alone, for a real arm)."""
 
@@ -287,6 +305,19 @@ def _demo(a: DemoArguments) -> list[NodeDescription]:
     ]
 
 
+def _dual_arm(a: DualArmArguments) -> list[NodeDescription]:
+    left, right = _namespace(a.left_namespace), _namespace(a.right_namespace)
+    if not left or not right or left == right:
+        raise ConfigError(f"left_namespace = '{a.left_namespace}', right_namespace = '{a.right_namespace}': "
+                          "expected two different, non-empty namespaces (one per arm)")
+    arms = [_demo(DemoArguments(robot=robot, real_time_factor=a.real_time_factor, stale_timeout=a.stale_timeout,
+                                namespace=ns)) for robot, ns in ((a.left_robot, left), (a.right_robot, right))]
+    # /clock is global: one publisher (the first arm's simulation), not two with different times
+    sim, *others = arms[1]
+    arms[1] = [dataclasses.replace(sim, parameters={**sim.parameters, "publish_clock": False}), *others]
+    return arms[0] + arms[1]
+
+
 def _primitive_server(a: PrimitiveServerArguments) -> list[NodeDescription]:
     prims = a.primitives_file or (primitives_file(a.robot) if a.robot and not a.params_file else "")
     overrides = {k: v for k, v in (("robot", a.robot), ("controller", a.controller),
@@ -320,6 +351,8 @@ LAUNCHES: dict[str, Launch] = {
     "demo": Launch(DemoArguments, _demo, "the simulated arm (sim_bridge) and primitive_server with the "
                    "shipped primitives of the robot, ready for service calls, and robot_state_publisher (TF "
                    "for RViz); what make run starts"),
+    "dual_arm": Launch(DualArmArguments, _dual_arm, "two simulated arms side by side (the Gen3 lite and the WAM by "
+                       "default), each with the demo's nodes under its own namespace; one planner serves both"),
     "primitive_server": Launch(PrimitiveServerArguments, _primitive_server, "primitive_server alone, for a "
                                "real arm: its driver publishes joint_states and runs the controller"),
     "record": Launch(RecordArguments, _record, "kinesthetic recording: sim_bridge in kinesthetic mode, "

@@ -4,7 +4,8 @@ when this process was started with it ignored); a SIGKILL of this process stops 
 
 The nodes and their parameters are those of ``ros2 launch deepprompt_ros demo.launch.py``: both
 come from :mod:`deepprompt_ros.bringup` (launch ``demo``), and the options below are its launch
-arguments. Each node runs as its own process (its own DDS participant), with LOCALHOST discovery
+arguments. ``--launch dual_arm`` (``make run-dual``) starts that launch's nodes instead, two arms
+in two namespaces, with its arguments as options. Each node runs as its own process (its own DDS participant), with LOCALHOST discovery
 unless ``ROS_AUTOMATIC_DISCOVERY_RANGE`` says otherwise. An optional node of the description
 (robot_state_publisher, TF for RViz) whose executable is in no prefix of ``AMENT_PREFIX_PATH`` is
 skipped with one line saying so.
@@ -22,14 +23,16 @@ import time
 from deepprompt_ros import bringup
 from deepprompt_ros.common.params import ConfigError
 
-LAUNCH = "demo"
+#: The launches run_main starts (``--launch``); the first is the default.
+LAUNCHES = ("demo", "dual_arm")
 
 
-def parser() -> argparse.ArgumentParser:
-    """Options ``--<argument>`` (``_`` written ``-``) for every argument of the demo launch."""
+def parser(launch: str = LAUNCHES[0]) -> argparse.ArgumentParser:
+    """``--launch`` and options ``--<argument>`` (``_`` written ``-``) for every argument of ``launch``."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    for spec in bringup.arguments(LAUNCH):
+    ap.add_argument("--launch", default=LAUNCHES[0], choices=LAUNCHES, help="the launch whose nodes are started")
+    for spec in bringup.arguments(launch):
         unit = f" ({spec.unit})" if spec.unit else ""
         ap.add_argument("--" + spec.name.replace("_", "-"), dest=spec.name, default=bringup.argument_text(spec),
                         help=spec.description + unit)
@@ -47,10 +50,12 @@ def _stop_with(parent_pid: int):
 
 
 def main(argv=None) -> int:
-    ap = parser()
-    args = ap.parse_args(argv)
+    launch = parser().parse_known_args(argv)[0].launch  # its options are the chosen launch's arguments
+    ap = parser(launch)
+    args = vars(ap.parse_args(argv))
+    del args["launch"]
     try:
-        nodes = bringup.nodes(LAUNCH, vars(args))
+        nodes = bringup.nodes(launch, args)
     except (ConfigError, FileNotFoundError) as exc:
         ap.error(str(exc))
     env = dict(os.environ)
@@ -75,9 +80,10 @@ def main(argv=None) -> int:
                 print(f"[run] {node.name} skipped: {exc}; {node.optional}", flush=True)
                 continue
             node_env = {**env, **dict(node.environment)}
-            procs[node.name] = subprocess.Popen(cmd, env=node_env, start_new_session=True,
-                                                preexec_fn=_stop_with(os.getpid()))
-            print(f"[run] started {node.name} (pid {procs[node.name].pid})", flush=True)
+            label = f"{node.namespace}/{node.name}" if node.namespace else node.name
+            procs[label] = subprocess.Popen(cmd, env=node_env, start_new_session=True,
+                                            preexec_fn=_stop_with(os.getpid()))
+            print(f"[run] started {label} (pid {procs[label].pid})", flush=True)
         print("[run] ready for service calls, e.g. `.venv/bin/python examples/planner_client.py`; Ctrl-C to stop",
               flush=True)
         while True:

@@ -27,6 +27,8 @@ NODE_CONFIG = {"sim_bridge": SimBridgeConfig, "primitive_server": ServerConfig, 
 #: Argument values other than the defaults, per launch (strings, as a launch file gets them).
 OTHER_VALUES = {
     "demo": {"robot": "wam", "real_time_factor": "0.5", "stale_timeout": "2", "namespace": "arm1"},
+    "dual_arm": {"left_robot": "wam", "right_robot": "gen3_lite", "left_namespace": "cell/a",
+                 "right_namespace": "/cell/b", "real_time_factor": "0.5", "stale_timeout": "2"},
     "primitive_server": {"params_file": str(ROOT / "config" / "primitive_server.yaml"), "robot": "wam",
                          "controller": "arm_controller", "primitives_file": "/tmp/primitives.yaml",
                          "namespace": "/cell/arm1"},
@@ -55,7 +57,7 @@ def test_executables_are_the_console_scripts_of_setup_py():
 @pytest.mark.parametrize("other", [False, True], ids=["defaults", "other_values"])
 def test_described_nodes_have_existing_files_and_declared_parameters(launch, other):
     nodes = bringup.nodes(launch, OTHER_VALUES[launch] if other else None)
-    assert len({n.name for n in nodes}) == len(nodes)
+    assert len({(n.namespace, n.name) for n in nodes}) == len(nodes)
     for node in nodes:
         if node.package != "deepprompt_ros":  # robot_state_publisher: tested below
             assert node.optional and node.executable == "robot_state_publisher"
@@ -136,7 +138,7 @@ def test_robot_state_publisher_gets_the_urdf_of_the_robot(launch, robot):
 
 
 def test_namespace_reaches_every_node():
-    for launch in bringup.LAUNCHES:
+    for launch in ("demo", "primitive_server", "record"):
         for ns in ("arm1", "/arm1"):
             for node in bringup.nodes(launch, {"namespace": ns}):
                 assert node.namespace == "arm1"
@@ -157,6 +159,24 @@ def test_namespace_reaches_every_node():
         bringup.nodes("demo", {"namespace": "arm 1"})
 
 
+def test_dual_arm_is_the_demo_in_two_namespaces_with_one_clock():
+    nodes = bringup.nodes("dual_arm", {"left_namespace": "/left_arm", "stale_timeout": "2"})
+    left = bringup.nodes("demo", {"robot": "gen3_lite", "namespace": "left_arm", "stale_timeout": "2"})
+    right = bringup.nodes("demo", {"robot": "wam", "namespace": "right_arm", "stale_timeout": "2"})
+    assert nodes[:3] == left  # the first arm: the demo's nodes as they are (its sim_bridge publishes /clock)
+    assert [n.namespace for n in nodes] == ["left_arm"] * 3 + ["right_arm"] * 3
+    # the second: the same but for its sim_bridge's clock
+    assert nodes[4:] == right[1:] and nodes[3].parameters == {**right[0].parameters, "publish_clock": False}
+    assert nodes[3].parameter_values()["publish_clock"] is False  # over the file's section (true)
+    assert left[0].parameter_values()["publish_clock"] is True
+    assert ["-r", "__ns:=/right_arm"] == nodes[3].ros_arguments()[1:3]
+    assert "publish_clock:=false" in nodes[3].ros_arguments()
+    for left_ns, right_ns in (("arm", "arm"), ("arm", ""), ("", "/arm")):
+        with pytest.raises(ConfigError, match=f"left_namespace = '{left_ns}', right_namespace = '{right_ns}': "
+                                              "expected two different, non-empty namespaces"):
+            bringup.nodes("dual_arm", {"left_namespace": left_ns, "right_namespace": right_ns})
+
+
 def test_invalid_arguments_are_refused_with_what_is_expected():
     with pytest.raises(ConfigError) as info:
         bringup.nodes("demo", {"real_time_factor": "fast", "robto": "wam", "stale_timeout": "-1"})
@@ -164,7 +184,7 @@ def test_invalid_arguments_are_refused_with_what_is_expected():
     for part in ("launch 'demo'", "real_time_factor = 'fast': expected a number", "unknown parameter 'robto'",
                  "stale_timeout = -1 s: expected a value in [0.001, 60] s"):
         assert part in text, text
-    with pytest.raises(ValueError, match="unknown launch 'nope'; expected one of demo, primitive_server, record"):
+    with pytest.raises(ValueError, match="unknown launch 'nope'; expected one of demo, dual_arm, primitive_server, record"):
         bringup.nodes("nope")
 
 
@@ -272,12 +292,13 @@ def test_launch_file_builds_the_described_nodes(stand_in_launch, launch, other):
 # ------------------------------------------------------------------------------------------------
 # make run
 # ------------------------------------------------------------------------------------------------
-def test_run_main_options_are_the_demo_arguments():
-    actions = {a.dest: a for a in run_main.parser()._actions if a.dest != "help"}
-    assert list(actions) == [s.name for s in bringup.arguments("demo")]
+@pytest.mark.parametrize("launch", ["demo", "dual_arm"])
+def test_run_main_options_are_the_launch_arguments(launch):
+    actions = {a.dest: a for a in run_main.parser(launch)._actions if a.dest not in ("help", "launch")}
+    assert list(actions) == [s.name for s in bringup.arguments(launch)]
     assert actions["real_time_factor"].option_strings == ["--real-time-factor"]
     assert {k: a.default for k, a in actions.items()} == {d["name"]: d["default_value"]
-                                                           for d in bringup.launch_argument_kwargs("demo")}
+                                                           for d in bringup.launch_argument_kwargs(launch)}
 
 
 @pytest.fixture
@@ -304,20 +325,22 @@ def fake_popen(monkeypatch):
 
 
 @pytest.mark.parametrize("argv", [[], ["--robot", "wam", "--real-time-factor", "0.5", "--stale-timeout", "2",
-                                       "--namespace", "arm1"]])
+                                       "--namespace", "arm1"],
+                                  ["--launch", "dual_arm", "--right-robot", "gen3_lite", "--right-namespace", "b"]])
 def test_run_main_starts_the_described_nodes_and_skips_a_missing_robot_state_publisher(
         fake_popen, monkeypatch, tmp_path, capsys, argv):
     monkeypatch.setenv("AMENT_PREFIX_PATH", str(tmp_path))  # a prefix without robot_state_publisher
     assert run_main.main(argv) == 1  # every fake node "exited" at once
     values = dict(zip(argv[::2], argv[1::2]))
     values = {k[2:].replace("-", "_"): v for k, v in values.items()}
-    *ours, rsp = bringup.nodes("demo", values)
+    described = bringup.nodes(values.pop("launch", "demo"), values)
+    ours = [n for n in described if not n.optional]
     assert [cmd for cmd, _ in fake_popen] == [n.command(sys.executable) for n in ours]
     assert all(env["OPENBLAS_NUM_THREADS"] == "1" for _, env in fake_popen)
     skipped = [line for line in capsys.readouterr().out.splitlines() if "robot_state_publisher" in line]
     assert skipped == [f"[run] robot_state_publisher skipped: lib/robot_state_publisher/robot_state_publisher is in "
                        f"no prefix of AMENT_PREFIX_PATH ({tmp_path}); source a ROS 2 installation that has "
-                       f"robot_state_publisher; RViz will have no TF (/tf) for the arm"]
+                       f"robot_state_publisher; RViz will have no TF (/tf) for the arm"] * (len(described) - len(ours))
 
 
 def test_run_main_starts_robot_state_publisher_found_through_ament_prefix_path(fake_popen, monkeypatch, tmp_path):
