@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 export AMENT_PREFIX_PATH := $(abspath $(VENV))$(if $(AMENT_PREFIX_PATH),:$(AMENT_PREFIX_PATH))
 
-.PHONY: setup run test bench experiments experiments-quick models train-sine train-reach train-shake clean
+.PHONY: setup run run-dual test bench experiments experiments-quick models train-sine train-reach train-shake clean
 
 setup:
 	bash tools/setup.sh $(VENV)
@@ -25,6 +25,10 @@ experiments-quick: setup
 
 run: setup
 	$(PY) -m deepprompt_ros.run_main
+
+# Two simulated arms, each with its server under its own namespace (/left_arm: Gen3 lite, /right_arm: WAM).
+run-dual: setup
+	$(PY) -m deepprompt_ros.run_main --launch dual_arm
 
 # Train the shipped primitives in models/ (seeded: the same command gives the same weights and choices;
 # the metadata's creation time and wall time differ). train-reach and train-shake give

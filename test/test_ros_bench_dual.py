@@ -28,4 +28,5 @@ def test_dual_benchmark_quick_mode_measures_both_arms_against_one_alone():
         (max(int(table[f"dual_{arm}_missed"]) for arm in arms) + 1) / (int(table["alone_missed"]) + 1), rel=1e-3)
     # every goal ran until the planner canceled it after the recording
     assert {int(table[k]) for k in ("alone_code", "dual_arm_a_code", "dual_arm_b_code")} == {ResultCode.CANCELED}
+    assert table["goals_through"] == "3"
     assert table["foreign_nodes"] == "0", table["foreign_node_names"]

@@ -9,7 +9,9 @@ Interfaces (names relative to the node's namespace; parameters: the fields of
 * publishes ``joint_states`` (sensor_msgs/JointState: name, position, velocity, effort) once per
   physics step, i.e. at ``rate_hz`` × ``real_time_factor`` per wall-clock second, or every n-th
   step with ``joint_states_rate_hz`` (n = round(rate_hz / joint_states_rate_hz));
-* publishes ``/clock`` (rosgraph_msgs/Clock) with the simulation time when ``publish_clock``;
+* publishes ``/clock`` (rosgraph_msgs/Clock) with the simulation time when ``publish_clock``: the
+  one global name (``/clock`` whatever the namespace); with several bridges one publishes it (the
+  ``dual_arm`` launch: its first arm's);
 * publishes ``robot_description`` (std_msgs/String) once: the URDF of the simulated robot,
   reliable and transient local with depth 1 (as robot_state_publisher offers it), so RViz's
   RobotModel display and subscribers that join later get it;
