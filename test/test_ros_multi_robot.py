@@ -90,8 +90,8 @@ def nodes(env):
             if node.optional:
                 continue
             if node.executable == "sim_bridge":
-                node = dataclasses.replace(node, parameters={**node.parameters, "camera.enabled": False,
-                                                                       "rate_hz": SIM_RATE_HZ})
+                node = dataclasses.replace(node, parameters={
+                    **node.parameters, "camera.enabled": False, "rate_hz": SIM_RATE_HZ})
             procs[(node.namespace, node.executable)] = NodeProcess(
                 node.command(sys.executable), {**env, **dict(node.environment)},
                 f"{env['ROS_LOG_DIR']}/{node.namespace}_{node.executable}.log")
