@@ -23,7 +23,6 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from deepprompt_ros.data.synthetic import bimodal_sine  # noqa: E402
-from deepprompt_ros.baselines.deep_promp_model import planner_condition  # noqa: E402
 from deepprompt_ros.primitive.deep_promp import DeepProMP  # noqa: E402
 from deepprompt_ros.baselines.promp import ProMP  # noqa: E402
 from deepprompt_ros.sim.tasks.kinematic_reach import reach_demos  # noqa: E402
@@ -148,7 +147,7 @@ def main(argv=None) -> int:
     xv, yv, obj = x100[idx], q0[idx], d0.contexts["object"][0]
 
     def deep():  # the server's default conditioning (exact for a split latent, with the planner's noise)
-        lat = planner_condition(prim, xv, yv, {"object": obj[None]})
+        lat = prim.condition_planner(xv, yv, contexts={"object": obj[None]}).latent
         return prim.mean_trajectory(lat, x100)
 
     def pro():

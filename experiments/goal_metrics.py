@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from bench.plot_bimodal import fractions
-from deepprompt_ros.baselines.deep_promp_model import DeepProMPModel, planner_condition
+from deepprompt_ros.baselines.deep_promp_model import DeepProMPModel
 from deepprompt_ros.baselines.interface import MovementPrimitiveModel
 from deepprompt_ros.data.demo_dataset import DemoDataset
 from deepprompt_ros.data.synthetic import bimodal_sine
@@ -103,7 +103,7 @@ class AblatedDeepProMP(DeepProMPModel):
         if not has_via:
             return prim.prior()
         if prim.cfg.latent_linear > 0:
-            return planner_condition(prim, inp.via_x, inp.via_y)
+            return prim.condition_planner(inp.via_x, inp.via_y).latent
         noise = prim.cfg.via_noise * np.asarray(prim.norm.y_std, dtype=np.float64)
         return prim.refine_map(prim.prior(), inp.via_x, inp.via_y, prior="standard", noise_std=noise).latent
 
@@ -291,7 +291,7 @@ def server_path(model: MovementPrimitiveModel, cond, via_x, via_y):
 
 
 def via_met(model: MovementPrimitiveModel, sets: Sequence[Mapping], tol: float = MET_TOL) -> dict:
-    """Goal 5 for a model's own conditioning (DeepProMP: :func:`planner_condition` and
+    """Goal 5 for a model's own conditioning (DeepProMP: :meth:`DeepProMP.condition_planner` and
     :func:`server_path`, the computation of the server's default Condition): each set of
     :func:`planner_via_sets` with its contexts (when the model takes them); ``share`` of the sets
     whose executed mean passes every via-point within ``tol``, ``errors`` the max error of each."""

@@ -40,7 +40,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from deepprompt_ros.baselines.deep_promp_model import DeepProMPModel, planner_condition
+from deepprompt_ros.baselines.deep_promp_model import DeepProMPModel
 from deepprompt_ros.baselines.promp_model import ProMPModel
 from deepprompt_ros.evaluation.reconstruction import reconstruction_mse
 from deepprompt_ros.data.demo_dataset import DemoDataset
@@ -153,7 +153,7 @@ def refined_mse(model: DeepProMPModel, test: DemoDataset, n_via: int, n_points: 
     for i, demo in enumerate(test.demos):
         y = demo.resampled(n_points)
         sel = np.sort(np.random.default_rng([seed, i]).choice(n_points, int(n_via), replace=False))
-        lat = planner_condition(prim, x[sel], y[sel])  # the model's default conditioning (DeepProMPModel's)
+        lat = prim.condition_planner(x[sel], y[sel]).latent  # the model's default conditioning (DeepProMPModel's)
         before.append(float(((prim.mean_trajectory(lat, x) - y) ** 2).mean()))
         res = prim.refine(lat, x[sel], y[sel], max_iterations=max_iterations)
         after.append(float(((prim.mean_trajectory(res.latent, x) - y) ** 2).mean()))

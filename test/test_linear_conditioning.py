@@ -17,7 +17,7 @@ from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
 from deepprompt_ros.model.phase import phase_basis
 from deepprompt_ros.primitive.deep_promp import DeepProMP
 from deepprompt_ros.primitive.latent import LatentGaussian
-from deepprompt_ros.primitive.linear_conditioning import condition_split
+from deepprompt_ros.primitive.linear_conditioning import _cholesky, _lower_solve, whitened_posterior
 from deepprompt_ros.robots.spec import load_robot
 from deepprompt_ros.server.config import ServerConfig, robot_limits
 from deepprompt_ros.server.primitives_file import PrimitiveEntry, load_primitive
@@ -93,6 +93,46 @@ def test_the_linear_block_is_textbook_gaussian_conditioning(n_via):
     # sampling draws from that covariance (z_lin around the mean of the one candidate)
     z = lat.linear.draw(np.random.default_rng(0), 20000)[:, :12]
     np.testing.assert_allclose(np.cov(z.T), lat.linear.cov(), atol=0.03 * lat.linear.cov().diagonal().max())
+
+
+@pytest.mark.parametrize("rs", [0.0, 0.2], ids=["no_mlp", "mlp"])
+def test_no_weights_and_no_mask_give_the_latent_of_weights_1_and_every_joint(rs):
+    """Without weights or a mask the conditioning skips weighing and selecting rows: the same numbers as
+    weights of 1 and a mask of every joint, with one candidate (no MLP) or several."""
+    prim, x, Y = split_model(rs=rs)
+    rng = np.random.default_rng(6)
+    for n_via in (2, 12):  # observation form (6 rows <= k_l = 30), information form (36 rows)
+        xv, yv = random_via_points(rng, x, Y, n_via)
+        a = prim.condition(xv, yv, via_noise=1e-6)
+        b = prim.condition(xv, yv, np.ones(n_via), np.ones((n_via, 3), dtype=bool), via_noise=1e-6)
+        assert a.linear.candidates.shape[0] == (1 if rs == 0 else 17)
+        for got, want in ((a.mean, b.mean), (a.var, b.var), (a.linear.weights, b.linear.weights),
+                          (a.linear.chol, b.linear.chol), (a.linear.via_error, b.linear.via_error)):
+            np.testing.assert_array_equal(got, want)
+
+
+def test_the_factorizations_are_numpys_and_a_matrix_not_positive_definite_is_refused():
+    """The LAPACK gufuncs called directly give np.linalg's arrays; a matrix that is not positive
+    definite raises LinAlgError as np.linalg.cholesky does; without the marginal likelihood the
+    posterior is the same."""
+    rng = np.random.default_rng(7)
+    for m, k in ((6, 12), (24, 12)):  # observation and information form
+        g, d = rng.normal(0, 3.0, (m, k)), rng.normal(0, 3.0, (3, m))
+        form, chol, u, loglik, qdiag = whitened_posterior(g, d)
+        a = g @ g.T + np.eye(m) if form == "observation" else g.T @ g + np.eye(k)
+        np.testing.assert_array_equal(chol, np.linalg.cholesky(a))
+        b = rng.normal(size=(a.shape[0], 5))
+        np.testing.assert_array_equal(_lower_solve(chol, b), np.linalg.solve(chol, b))
+        np.testing.assert_allclose(chol @ _lower_solve(chol, b), b, rtol=0, atol=1e-9 * np.abs(b).max())
+        # −½ dᵀ(I + GGᵀ)⁻¹d directly
+        direct = -0.5 * np.einsum("cm,cm->c", d, np.linalg.solve(g @ g.T + np.eye(m), d.T).T)
+        np.testing.assert_allclose(loglik, direct, rtol=1e-12)
+        without = whitened_posterior(g, d, with_loglik=False)
+        assert without[3] is None
+        for got, want in zip(without[1:3] + without[4:], (chol, u, qdiag)):
+            np.testing.assert_array_equal(got, want)
+    with np.errstate(invalid="ignore"), pytest.raises(np.linalg.LinAlgError, match="not positive definite"):
+        _cholesky(np.array([[1.0, 2.0], [2.0, 1.0]]))
 
 
 def test_weights_scale_a_via_point_precision_and_zero_removes_it():

@@ -12,7 +12,7 @@ import pytest
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from deepprompt_ros.baselines.deep_promp_model import DeepProMPModel, planner_condition  # noqa: E402
+from deepprompt_ros.baselines.deep_promp_model import DeepProMPModel  # noqa: E402
 from deepprompt_ros.common.results import Code  # noqa: E402
 from deepprompt_ros.data.builtin import gen3_lite_reach  # noqa: E402
 from deepprompt_ros.primitive.deep_promp import DeepProMP  # noqa: E402
@@ -97,15 +97,50 @@ def test_more_constraints_than_the_linear_block_has_are_reported_unmet_not_hidde
     assert abs(float(np.abs(model.mean_trajectory(lat, x) - y).max()) - res.refine_max_error) < 1e-9
 
 
-def test_planner_condition_is_the_servers_default_path(planner_sets):
-    core, model = core_for(SPLIT)
+@pytest.mark.parametrize("via_noise", [PLANNER_VIA_NOISE, None], ids=["planner_noise", "models_noise"])
+def test_condition_planner_is_the_servers_default_path(planner_sets, via_noise):
+    """The same latent, error and re-conditionings as the server's default Condition, met by the first
+    conditioning (the planner's noise) or only after conditioning again (the model's own noise)."""
+    core, model = core_for(SPLIT, via_noise=via_noise or 0.0)
     wrapped = DeepProMPModel()
     wrapped._set(model)
+    iterations = []
     for s in planner_sets[:10]:
-        lat = planner_condition(model, s["x"], s["y"], s["contexts"])
-        served = core.handles.get(core.condition(request(s)).handle).latent
-        np.testing.assert_allclose(lat.mean, served.mean, rtol=0, atol=1e-12)
-        np.testing.assert_allclose(wrapped.condition(s["x"], s["y"], s["contexts"]).mean, lat.mean, rtol=0, atol=0)
+        planned = model.condition_planner(s["x"], s["y"], contexts=s["contexts"], via_noise=via_noise)
+        res = core.condition(request(s))
+        served = core.handles.get(res.handle).latent
+        np.testing.assert_allclose(planned.latent.mean, served.mean, rtol=0, atol=1e-12)
+        assert (planned.via_error, planned.iterations) == (res.refine_max_error, res.refine_iterations)
+        assert planned.via_error == pytest.approx(measured_error(core, model, res, s), rel=1e-6, abs=1e-12)
+        iterations.append(planned.iterations)
+        if via_noise is not None:
+            np.testing.assert_allclose(wrapped.condition(s["x"], s["y"], s["contexts"]).mean, planned.latent.mean,
+                                       rtol=0, atol=0)
+    assert max(iterations) == 0 if via_noise is not None else min(iterations) >= 1
+
+
+def test_condition_planner_reports_a_plain_latents_error_and_takes_no_empty_via_points(planner_sets):
+    """A plain latent is the aggregation as it is, its error measured at the via-points of weight > 0;
+    empty via-points are none (the aggregation of the contexts); bad budgets are refused."""
+    prim = DeepProMP.from_checkpoint(str(PLAIN))
+    s = next(s for s in planner_sets if len(s["x"]) >= 3)
+    w = np.ones(len(s["x"]))
+    worst = int(np.abs(prim.mean_trajectory(prim.condition(s["x"], s["y"], contexts=s["contexts"]), s["x"])
+                       - s["y"]).max(1).argmax())
+    w[worst] = 0.0  # the via-point the conditioned mean misses most, removed
+    planned = prim.condition_planner(s["x"], s["y"], via_weights=w, contexts=s["contexts"])
+    lat = prim.condition(s["x"], s["y"], via_weights=w, contexts=s["contexts"])
+    np.testing.assert_array_equal(planned.latent.mean, lat.mean)
+    err = np.abs(prim.mean_trajectory(lat, s["x"]) - s["y"]).max(1)
+    assert planned.iterations == 0 and planned.via_error == pytest.approx(np.delete(err, worst).max(), rel=1e-12)
+    assert planned.via_error < err[worst]
+    empty = prim.condition_planner(np.zeros(0), np.zeros((0, 6)), contexts=s["contexts"])
+    np.testing.assert_array_equal(empty.latent.mean, prim.condition(contexts=s["contexts"]).mean)
+    assert empty.via_error == 0.0
+    for kw, what in (({"tol": 0.0}, "tol"), ({"max_iterations": -1}, "max_iterations"),
+                     ({"time_budget": float("nan")}, "time_budget")):
+        with pytest.raises(ValueError, match=f"{what} = .* expected"):
+            prim.condition_planner(s["x"], s["y"], **kw)
 
 
 @pytest.mark.parametrize("path", [SPLIT, PLAIN], ids=["split", "plain"])

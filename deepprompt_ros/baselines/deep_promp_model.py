@@ -5,37 +5,14 @@ from __future__ import annotations
 
 from typing import Callable
 
-import numpy as np
-
 from deepprompt_ros.baselines.interface import (InputSpec, MovementPrimitiveModel, provenance,
                                                 split_for_validation)
 from deepprompt_ros.model.checkpoint import load_checkpoint, save_checkpoint
 from deepprompt_ros.primitive.deep_promp import DeepProMP
-from deepprompt_ros.primitive.latent import PLANNER_VIA_NOISE, LatentGaussian
+from deepprompt_ros.primitive.latent import LatentGaussian
 from deepprompt_ros.training.loop import train
 
-__all__ = ["DeepProMPModel", "planner_condition", "PLANNER_TOLERANCE"]
-
-#: The via-point tolerance (rad) of :func:`planner_condition`, the primitive server's default
-#: (``refine_tolerance``).
-PLANNER_TOLERANCE = 1e-6
-
-
-def planner_condition(prim: DeepProMP, via_x, via_y, contexts=None, images=None) -> LatentGaussian:
-    """``prim`` conditioned as the primitive server's default Condition request does it (no
-    refinement asked for): the aggregation of every input (paper Eq. 1 / 3) and, for a split latent,
-    the exact conditioning of its linear block with the planner's via-point noise
-    (:data:`deepprompt_ros.primitive.latent.PLANNER_VIA_NOISE`), conditioned again with a smaller one
-    while a via-point is missed by more than :data:`PLANNER_TOLERANCE`
-    (:meth:`DeepProMP.refine_linear`). via_x (n,), via_y (n, d), n may be 0."""
-    has_via = np.asarray(via_x).size > 0
-    vx, vy = (via_x, via_y) if has_via else (None, None)
-    if not (has_via and prim.exact_conditioning):
-        return prim.condition(vx, vy, contexts=contexts, images=images)
-    lat = prim.condition(vx, vy, contexts=contexts, images=images, via_noise=PLANNER_VIA_NOISE)
-    if lat.linear.via_error <= PLANNER_TOLERANCE:
-        return lat
-    return prim.refine_linear(lat, vx, vy, tol=PLANNER_TOLERANCE).latent
+__all__ = ["DeepProMPModel"]
 
 
 class DeepProMPModel(MovementPrimitiveModel):
@@ -71,9 +48,11 @@ class DeepProMPModel(MovementPrimitiveModel):
                               prim.image_shape)
 
     def condition(self, via_x=None, via_y=None, contexts=None, images=None) -> LatentGaussian:
-        """As the primitive server's default Condition: :meth:`planner_condition`."""
+        """As the primitive server's default Condition:
+        :meth:`~deepprompt_ros.primitive.deep_promp.DeepProMP.condition_planner`."""
         inp = self.check_inputs(via_x, via_y, contexts, images)
-        return planner_condition(self.primitive, inp.via_x, inp.via_y, inp.contexts or None, inp.images)
+        return self.primitive.condition_planner(inp.via_x, inp.via_y, contexts=inp.contexts or None,
+                                                images=inp.images).latent
 
     def _latent(self, cond) -> LatentGaussian:
         if not isinstance(cond, LatentGaussian) or cond.mean.shape != (self.primitive.latent_dim,):

@@ -1,7 +1,8 @@
 """A trained DeepProMP and the operations of the paper (Sec. III-C and appendix): conditioning
 (Eq. 1 and 3; for a split latent also exact Gaussian conditioning of its linear block,
 :mod:`deepprompt_ros.primitive.linear_conditioning`), decoding, sampling, blending (Eq. 4) and
-refinement (Eq. 5).
+refinement (Eq. 5); :meth:`DeepProMP.condition_planner` is the primitive server's default
+conditioning of a planner's via-points.
 
 The module is past ~400 lines on purpose: :class:`DeepProMP` is the one object a user or the server
 holds, and its methods are mostly input validation and documentation around the computations that
@@ -19,6 +20,7 @@ units. Every public method validates its inputs and raises ``ValueError`` saying
 from __future__ import annotations
 
 import dataclasses
+import math
 import pathlib
 import time
 from typing import Callable, Mapping, Sequence
@@ -32,13 +34,39 @@ from deepprompt_ros.model.checkpoint import Checkpoint, Normalization, load_chec
 from deepprompt_ros.model.network import DeepProMPNet
 from deepprompt_ros.primitive.blending import blend_gaussians
 from deepprompt_ros.primitive.inputs import check_images, check_phases, check_weights
-from deepprompt_ros.primitive.latent import LatentGaussian
+from deepprompt_ros.primitive.latent import PLANNER_TOLERANCE, PLANNER_VIA_NOISE, LatentGaussian
 from deepprompt_ros.primitive.linear_conditioning import (SplitRefinement, condition_split, linear_block_variance,
                                                           refine_split)
 from deepprompt_ros.primitive.numpy_net import NumpyNet
 from deepprompt_ros.primitive.refinement import RefinementResult, refine_exact, refine_map
 
-__all__ = ["DeepProMP"]
+__all__ = ["DeepProMP", "PlannerConditioning"]
+
+
+def _joined(parts: list) -> np.ndarray:
+    """The arrays of ``parts`` concatenated along their first axis (a single one as it is)."""
+    return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+
+@dataclasses.dataclass(frozen=True)
+class PlannerConditioning:
+    """Outcome of :meth:`DeepProMP.condition_planner`.
+
+    Attributes
+    ----------
+    latent : LatentGaussian
+        The conditioned latent (for a split latent, the best one re-conditioning found).
+    via_error : float
+        Max |mean trajectory − via-point| (joint units) over the observed joints of the via-points of
+        weight > 0; 0 without such a joint.
+    iterations : int
+        How many times the linear block was conditioned again with a smaller noise (0: met by the
+        first conditioning, or a plain latent).
+    """
+
+    latent: LatentGaussian
+    via_error: float
+    iterations: int
 
 
 class DeepProMP:
@@ -65,6 +93,7 @@ class DeepProMP:
             raise ValueError(f"{len(self.joint_names)} joint names for a model with {self.cfg.n_joints} joints")
         self._np = NumpyNet(net, normalization)
         self._split = self.cfg.latent_linear > 0
+        self._context_dims = dict(self.cfg.context_dims)
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -106,7 +135,7 @@ class DeepProMP:
 
     @property
     def context_dims(self) -> dict[str, int]:
-        return dict(self.cfg.context_dims)
+        return dict(self._context_dims)
 
     @property
     def image_shape(self):
@@ -127,9 +156,8 @@ class DeepProMP:
                              f"{self.n_joints} joints: {joint_list_text(self.joint_names)}")
         if n is not None and y.shape[0] != n:
             raise ValueError(f"{y.shape[0]} {what} position rows for {n} phases; expected one row per phase")
-        bad = ~np.isfinite(y)
-        if bad.any():
-            i, j = np.argwhere(bad)[0]
+        if not np.isfinite(y).all():
+            i, j = np.argwhere(~np.isfinite(y))[0]
             raise ValueError(f"{what} {i} joint '{self.joint_names[j]}' is NaN or inf; expected finite positions")
         return y
 
@@ -151,17 +179,17 @@ class DeepProMP:
 
     def encode_context(self, name: str, c):
         """q(z | c_i) for low-dim contexts: c (m, c_dim) raw units → μ_i, σ²_i (m, k)."""
-        if name not in self.context_dims:
+        dim = self._context_dims.get(name)
+        if dim is None:
             raise ValueError(f"primitive '{self.name}' takes no context '{name}'; it accepts "
-                             f"{sorted(self.context_dims) or 'no low-dimensional contexts'}"
+                             f"{sorted(self._context_dims) or 'no low-dimensional contexts'}"
                              f"{' and images' if self.image_shape else ''}")
-        dim = self.context_dims[name]
         c = np.asarray(c, dtype=np.float64)
         if c.ndim == 1:
             c = c[None, :]
         if c.ndim != 2 or c.shape[1] != dim or c.shape[0] < 1:
             raise ValueError(f"context '{name}' must have {dim} values per vector (shape (m, {dim})), got {c.shape}")
-        if not np.all(np.isfinite(c)):
+        if not np.isfinite(c).all():
             raise ValueError(f"context '{name}' contains NaN or inf; expected finite values")
         return self._np.encode_context(name, c)
 
@@ -223,8 +251,8 @@ class DeepProMP:
             Split latent: draws of z_nl besides the mean of its aggregation.
         """
         noise = self.cfg.via_noise if via_noise is None else via_noise
-        if isinstance(noise, bool) or not (isinstance(noise, (int, float, np.floating, np.integer)) and np.isfinite(noise)
-                                            and noise > 0):
+        if isinstance(noise, bool) or not (isinstance(noise, (int, float, np.floating, np.integer))
+                                            and math.isfinite(noise) and noise > 0):
             raise ValueError(f"via_noise = {via_noise!r}: expected a finite standard deviation > 0 (normalized joint "
                              "units) or None (the model's own)")
         if isinstance(n_candidates, bool) or not isinstance(n_candidates, (int, np.integer)) or n_candidates < 0:
@@ -246,6 +274,63 @@ class DeepProMP:
                 "and context values of the size of the training data and weights of moderate size")
         return out
 
+    def condition_planner(self, via_x=None, via_y=None, via_weights=None, via_mask=None,
+                          contexts: Mapping[str, np.ndarray] | None = None,
+                          context_weights: Mapping[str, Sequence[float]] | None = None,
+                          images=None, image_weight: float = 1.0, via_noise: float | None = PLANNER_VIA_NOISE,
+                          tol: float = PLANNER_TOLERANCE, max_iterations: int = 200,
+                          time_budget: float | None = None) -> PlannerConditioning:
+        """Condition on a planner's via-points as the primitive server's default Condition request does
+        (no Eq. 5 refinement asked for): :meth:`condition` with the planner's via-point noise, and for a
+        split latent whose mean still misses a via-point by more than ``tol``, its linear block
+        conditioned again with a smaller noise (:meth:`refine_linear`) until the mean meets them.
+
+        A plain latent is the aggregation of :meth:`condition` as it is (``via_noise`` and the budgets
+        unused); its via-point error is measured and reported all the same.
+
+        Parameters
+        ----------
+        via_x, via_y, via_weights, via_mask, contexts, context_weights, images, image_weight
+            As for :meth:`condition`; via-points of weight 0 are not met.
+        via_noise : float, optional
+            Split latent: the via-points' standard deviation in the first conditioning (normalized
+            joint units), default the planner's
+            (:data:`~deepprompt_ros.primitive.latent.PLANNER_VIA_NOISE`); None: the model's own
+            (``ModelConfig.via_noise``).
+        tol : float
+            Via-point tolerance (joint units, rad); default
+            :data:`~deepprompt_ros.primitive.latent.PLANNER_TOLERANCE`.
+        max_iterations : int
+            Re-conditionings at most (each with the noise divided by 10).
+        time_budget : float, optional
+            Wall time (s) after which no further re-conditioning starts (None: no limit).
+
+        Returns
+        -------
+        PlannerConditioning; ``via_error`` > ``tol`` says the via-points were not met (the linear
+        block cannot meet them, or a budget ended the re-conditioning), never a silent miss.
+        """
+        self._check_budgets(tol, max_iterations, time_budget)
+        if via_x is not None and via_y is not None and np.size(via_x) == 0 == np.size(via_y):
+            # no via-point: the aggregation of the rest
+            via_x = via_y = via_weights = via_mask = None
+        latent = self.condition(via_x, via_y, via_weights, via_mask, contexts, context_weights, images,
+                                image_weight, via_noise=via_noise)
+        if latent.linear is not None and latent.linear.via_error <= tol:
+            return PlannerConditioning(latent, latent.linear.via_error, 0)
+        if via_x is None:
+            return PlannerConditioning(latent, 0.0, 0)
+        x = self.check_phases(via_x, "via-point phase")
+        y = self.check_positions(via_y, x.shape[0])
+        active = check_weights(via_weights, x.shape[0], "via-points") > 0
+        x, y, mask = x[active], y[active], self.check_mask(via_mask, x.shape[0])[active]
+        if latent.linear is not None:
+            res = self.refine_linear(latent, x, y, mask, tol=tol, max_iterations=max_iterations,
+                                     time_budget=time_budget)
+            return PlannerConditioning(res.latent, res.max_error, res.iterations)
+        error = float(np.abs((self.decode(latent.mean, x) - y)[mask]).max()) if mask.any() else 0.0
+        return PlannerConditioning(latent, error, 0)
+
     def _condition(self, via_x, via_y, via_weights, via_mask, contexts, context_weights, images, image_weight,
                    noise: float, n_candidates: int) -> LatentGaussian:
         """:meth:`condition` after its checks of ``via_noise`` and ``n_candidates`` (may overflow)."""
@@ -260,34 +345,46 @@ class DeepProMP:
             mus.append(mu), vars_.append(var)
             ws.append(check_weights([image_weight], 1, "images"))
         n_c = len(mus)
-        q_c = self.aggregate(np.concatenate(mus), np.concatenate(vars_), np.concatenate(ws)) if mus else self.prior()
+        q_c = self.aggregate(_joined(mus), _joined(vars_), _joined(ws)) if mus else self.prior()
         via = None
         if via_x is not None or via_y is not None:
             if via_x is None or via_y is None:
                 raise ValueError("via-points need both phases via_x (n,) and positions via_y (n, d)")
             x = self.check_phases(via_x, "via-point phase")
             y = self.check_positions(via_y, x.shape[0])
-            w = check_weights(via_weights, x.shape[0], "via-points")
-            mask = self.check_mask(via_mask, x.shape[0])
+            # None: every weight 1, every joint constrained (nothing to weigh or drop)
+            w = None if via_weights is None else check_weights(via_weights, x.shape[0], "via-points")
+            mask = None if via_mask is None else self.check_mask(via_mask, x.shape[0])
             via = x, y, w, mask
             if not self._split or self._np.mlp_reads_z_nl:  # (a split latent's z_lin never reads the encodings)
-                y_enc, w_enc = y, w
-                if not mask.all():
+                y_enc, w_enc = y, np.ones(x.shape[0]) if w is None else w
+                if mask is not None and not mask.all():
                     full = mask.all(1)
-                    base = self._condition(x[full], y[full], w[full], None, contexts, context_weights, images,
+                    base = self._condition(x[full], y[full], w_enc[full], None, contexts, context_weights, images,
                                            image_weight, noise, n_candidates)
                     y_enc = np.where(mask, y, self.decode(base.mean, x))
-                    w_enc = w * mask.sum(1) / self.n_joints
+                    w_enc = w_enc * mask.sum(1) / self.n_joints
                 mu, var = self.encode_via_points(x, y_enc)
                 mus.append(mu), vars_.append(var), ws.append(w_enc)
         if not mus and via is None:
             return self.prior()
         # q_all differs from q_c only when via-point encodings were added after the contexts and images
-        q_all = self.aggregate(np.concatenate(mus), np.concatenate(vars_), np.concatenate(ws)) if len(mus) > n_c else q_c
-        if not self._split or via is None or not ((via[2] > 0)[:, None] & via[3]).any():
-            # no observed joint of a via-point of weight > 0: the aggregation is the distribution
-            return LatentGaussian(q_all.mean, q_all.var, context_mean=q_c.mean, context_var=q_c.var)
-        return condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, *via, noise, n_candidates)
+        q_all = self.aggregate(_joined(mus), _joined(vars_), _joined(ws)) if len(mus) > n_c else q_c
+        if self._split and via is not None:
+            observed = self._observed(*via)
+            if via[0].shape[0] and (observed is None or observed.any()):
+                return condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, *via[:3], observed, noise,
+                                       n_candidates)
+        # no observed joint of a via-point of weight > 0: the aggregation is the distribution
+        return LatentGaussian(q_all.mean, q_all.var, context_mean=q_c.mean, context_var=q_c.var)
+
+    @staticmethod
+    def _observed(x, y, w, mask) -> np.ndarray | None:
+        """The joints the exact conditioning observes: those of the via-points of weight > 0, shape (n, d)
+        bool, or None for every joint of every via-point (neither weights nor a mask given)."""
+        if mask is None:
+            return None if w is None else np.repeat((w > 0)[:, None], y.shape[1], axis=1)
+        return mask if w is None else (w > 0)[:, None] & mask
 
     @staticmethod
     def aggregate(mu: np.ndarray, var: np.ndarray, w: np.ndarray) -> LatentGaussian:
@@ -481,16 +578,19 @@ class DeepProMP:
         x = self.check_phases(via_x, "via-point phase")
         y = self.check_positions(via_y, x.shape[0])
         mask = self.check_mask(joint_mask, x.shape[0])
-        if not (np.isfinite(tol) and tol > 0):
+        self._check_budgets(tol, max_iterations, time_budget)
+        deadline = math.inf if time_budget is None else time.perf_counter() + time_budget
+        return refine_split(self._np, latent, x, y, mask, float(tol), int(max_iterations), deadline=deadline)
+
+    @staticmethod
+    def _check_budgets(tol, max_iterations, time_budget) -> None:
+        """The tolerance and budgets of :meth:`refine_linear` and :meth:`condition_planner`."""
+        if not (math.isfinite(tol) and tol > 0):
             raise ValueError(f"tol = {tol!r}: expected a finite tolerance > 0 (rad)")
         if int(max_iterations) != max_iterations or max_iterations < 0:
             raise ValueError(f"max_iterations = {max_iterations!r}: expected an integer >= 0")
-        deadline = float("inf")
-        if time_budget is not None:
-            if not (np.isfinite(time_budget) and time_budget > 0):
-                raise ValueError(f"time_budget = {time_budget!r}: expected seconds > 0 (or None: no limit)")
-            deadline = time.perf_counter() + time_budget
-        return refine_split(self._np, latent, x, y, mask, float(tol), int(max_iterations), deadline=deadline)
+        if time_budget is not None and not (math.isfinite(time_budget) and time_budget > 0):
+            raise ValueError(f"time_budget = {time_budget!r}: expected seconds > 0 (or None: no limit)")
 
     def refine_map(self, latent: LatentGaussian, via_x, via_y, joint_mask=None, prior: str = "posterior",
                    noise_std=None, max_iterations: int = 50, tol: float = 1e-6,

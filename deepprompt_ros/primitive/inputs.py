@@ -25,9 +25,9 @@ def check_phases(x, what: str = "phase", rhythmic: bool = False) -> np.ndarray:
     x = np.asarray(x, dtype=np.float64)
     if x.ndim != 1:
         raise ValueError(f"{what} must be a 1-D array of phases in [0, 1], got shape {x.shape}")
-    if not np.all(np.isfinite(x)):
-        raise ValueError(f"{what} contains NaN or inf; expected finite phases in [0, 1]")
-    if x.size and (x.min() < 0.0 or x.max() > 1.0):
+    if x.size and not (x.min() >= 0.0 and x.max() <= 1.0):  # (false for NaN too)
+        if not np.all(np.isfinite(x)):
+            raise ValueError(f"{what} contains NaN or inf; expected finite phases in [0, 1]")
         bad = x[(x < 0) | (x > 1)][0]
         raise ValueError(f"{what} {bad:.6g} is outside [0, 1]; phases are normalized time "
                          f"({'fraction of a cycle' if rhythmic else 'start=0, end=1'})")
@@ -41,6 +41,6 @@ def check_weights(w, n: int, what: str) -> np.ndarray:
     w = np.asarray(w, dtype=np.float64).reshape(-1)
     if w.shape[0] != n:
         raise ValueError(f"{what}: {w.shape[0]} importance weights for {n} elements; expected one per element")
-    if not np.all(np.isfinite(w)) or np.any(w < 0):
+    if not np.isfinite(w).all() or (w < 0).any():
         raise ValueError(f"{what}: importance weights must be finite and >= 0, got {w.tolist()}")
     return w

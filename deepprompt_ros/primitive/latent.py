@@ -13,7 +13,7 @@ import dataclasses
 
 import numpy as np
 
-__all__ = ["LatentGaussian", "LinearBlock", "PLANNER_VIA_NOISE"]
+__all__ = ["LatentGaussian", "LinearBlock", "PLANNER_VIA_NOISE", "PLANNER_TOLERANCE"]
 
 #: The standard deviation of a planner's via-point in the exact conditioning of a split latent
 #: (normalized joint units: rad / the joint's normalization std). A via-point a planner asks for is a
@@ -21,6 +21,11 @@ __all__ = ["LatentGaussian", "LinearBlock", "PLANNER_VIA_NOISE"]
 #: (:meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.refine_linear` conditions again with a
 #: smaller noise when it does not). The primitive server's default (parameter ``via_noise``).
 PLANNER_VIA_NOISE = 1e-7
+
+#: The via-point tolerance (rad) a planner's via-points are met to by
+#: :meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.condition_planner`: the primitive server's
+#: default (parameter ``refine_tolerance``).
+PLANNER_TOLERANCE = 1e-6
 
 
 def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -16,9 +16,15 @@ from it) are weighted by the closed-form marginal likelihood of the via-points, 
 
 Numerics (float64): everything is whitened (rows divided by their noise, columns times the prior
 std), then factored by Cholesky — of I + G Gᵀ (M × M) when there are no more rows M than k_l, of the
-precision I + Gᵀ G (k_l × k_l) otherwise — and solved by triangular substitution; no inverse of an
+precision I + Gᵀ G (k_l × k_l) otherwise — and solved with the triangular factor; no inverse of an
 ill-conditioned matrix is formed (the information form's L⁻¹ is that of the whitened precision's
 Cholesky factor, whose condition number is the square root of the precision's).
+
+Speed: the conditioning stays in numpy, one BLAS library with one pool of threads (a second
+library's pool stalls against numpy's on few cores). Its two LAPACK steps, the Cholesky factorization
+and the solve with the factor, call numpy's gufuncs directly in :func:`_cholesky` and
+:func:`_lower_solve`, the one seam that does: ``np.linalg``'s per-call checks cost more than these
+small factorizations (bench_core's ``condition_ratio``); a test compares the two paths.
 """
 from __future__ import annotations
 
@@ -28,7 +34,7 @@ import time
 from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
+from numpy.linalg import _umath_linalg
 
 from deepprompt_ros.primitive.latent import LatentGaussian, LinearBlock
 
@@ -38,20 +44,23 @@ if TYPE_CHECKING:
 __all__ = ["whitened_posterior", "condition_split", "linear_block_variance", "SplitRefinement", "refine_split"]
 
 
-def whitened_posterior(g: np.ndarray, d: np.ndarray) -> tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def whitened_posterior(g: np.ndarray, d: np.ndarray, with_loglik: bool = True
+                       ) -> tuple[str, np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
     """Posterior of u ~ N(0, I) given d_c = G u + e, e ~ N(0, I), for C right-hand sides at once.
 
     Parameters
     ----------
     g : array, shape (M, k), the whitened design G
     d : array, shape (C, M), the whitened residuals of C candidates
+    with_loglik : bool
+        Whether to compute ``loglik`` (a single candidate needs no weight).
 
     Returns
     -------
     form : "observation" (M <= k) or "information"
     chol : array, lower Cholesky factor L of I + G Gᵀ (M, M) or of I + Gᵀ G (k, k)
     u : array, shape (C, k), the posterior means (I + GᵀG)⁻¹ Gᵀ d_c
-    loglik : array, shape (C,)
+    loglik : array, shape (C,), or None without ``with_loglik``
         −½ d_cᵀ (I + G Gᵀ)⁻¹ d_c = −½ (‖d_c − G u_c‖² + ‖u_c‖²): the log marginal likelihood of d_c
         up to the term −½ log det(I + G Gᵀ) every candidate shares.
     qdiag : array, shape (k,), the diagonal of the posterior covariance Q = (I + GᵀG)⁻¹
@@ -59,33 +68,55 @@ def whitened_posterior(g: np.ndarray, d: np.ndarray) -> tuple[str, np.ndarray, n
     m, k = g.shape
     c = d.shape[0]
     if m == 0:
-        return "observation", np.zeros((0, 0)), np.zeros((c, k)), np.zeros(c), np.ones(k)
+        return "observation", np.zeros((0, 0)), np.zeros((c, k)), np.zeros(c) if with_loglik else None, np.ones(k)
     if m <= k:
-        # one triangular solve L⁻¹ [G | dᵀ]: W = L⁻¹G gives Q = I − WᵀW, v = L⁻¹dᵀ gives
+        # one solve with the factor, L⁻¹ [G | dᵀ]: W = L⁻¹G gives Q = I − WᵀW, v = L⁻¹dᵀ gives
         # u = Wᵀ v and dᵀ(I + GGᵀ)⁻¹d = ‖v‖²
         s = g @ g.T
         s.flat[::m + 1] += 1.0  # I + G Gᵀ
-        chol = np.linalg.cholesky(s)
+        chol = _cholesky(s)
         wv = _lower_solve(chol, np.concatenate([g, d.T], 1))
         w, v = wv[:, :k], wv[:, k:]
-        qdiag = np.maximum(1.0 - np.einsum("mk,mk->k", w, w), 0.0)
-        return "observation", chol, (w.T @ v).T, -0.5 * np.einsum("mc,mc->c", v, v), qdiag
+        qdiag = 1.0 - np.einsum("mk,mk->k", w, w)
+        np.maximum(qdiag, 0.0, out=qdiag)
+        loglik = -0.5 * np.einsum("mc,mc->c", v, v) if with_loglik else None
+        return "observation", chol, (w.T @ v).T, loglik, qdiag
     # information form: L⁻¹ [I | Gᵀdᵀ] gives Q = L⁻ᵀL⁻¹ and u = L⁻ᵀ L⁻¹ Gᵀ d
-    chol = np.linalg.cholesky(np.eye(k) + g.T @ g)
+    p = g.T @ g
+    p.flat[::k + 1] += 1.0  # I + Gᵀ G
+    chol = _cholesky(p)
     lv = _lower_solve(chol, np.concatenate([np.eye(k), g.T @ d.T], 1))
     li, v = lv[:, :k], lv[:, k:]
     u = (li.T @ v).T
-    res = d - u @ g.T
-    return ("information", chol, u, -0.5 * (np.einsum("cm,cm->c", res, res) + np.einsum("ck,ck->c", u, u)),
-            np.einsum("jk,jk->k", li, li))
+    loglik = None
+    if with_loglik:
+        res = d - u @ g.T
+        loglik = -0.5 * (np.einsum("cm,cm->c", res, res) + np.einsum("ck,ck->c", u, u))
+    return "information", chol, u, loglik, np.einsum("jk,jk->k", li, li)
+
+
+def _cholesky(a: np.ndarray) -> np.ndarray:
+    """The lower Cholesky factor of a symmetric positive definite matrix ``a`` (float64, (n, n)): the
+    array ``np.linalg.cholesky`` gives, from the gufunc it calls, without its per-call checks. For a
+    matrix that is not positive definite in floating point numpy returns NaN, raised here (numpy also
+    warns unless invalid values are ignored, as every caller here does).
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError
+        When ``a`` is not positive definite in floating point (or holds NaN).
+    """
+    chol = _umath_linalg.cholesky_lo(a, signature="d->d")
+    if math.isnan(chol[0, 0]):
+        raise np.linalg.LinAlgError("the matrix is not positive definite")
+    return chol
 
 
 def _lower_solve(chol: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """L⁻¹ b for a lower-triangular L by forward substitution (LAPACK trsm through torch, float64; numpy's
-    solve would factor L again)."""
-    # solved as Xᵀ Lᵀ = bᵀ: the transposed views are column-major, as LAPACK takes them (no copies)
-    return torch.linalg.solve_triangular(torch.from_numpy(chol).T, torch.from_numpy(b).T, upper=True,
-                                         left=False).numpy().T
+    """L⁻¹ b for a Cholesky factor L (positive diagonal) and b (n, m): the array ``np.linalg.solve``
+    gives (LAPACK gesv; numpy has no triangular solver, and the LU of a triangular matrix costs little
+    beside the substitution), from the gufunc it calls, without its per-call checks."""
+    return _umath_linalg.solve(chol, b, signature="dd->d")
 
 
 _EPS_CACHE: dict[tuple[int, int, int], np.ndarray] = {}
@@ -122,8 +153,10 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
         q_c(z), the aggregation of contexts and images only; its z_lin block is the prior of z_lin.
     all_mean, all_var : array, shape (k,)
         The aggregation of everything (via-points included); its z_nl block proposes the candidates.
-    x : array, shape (n,); y : array, shape (n, d) joint units; w : array, shape (n,) ω >= 0;
-    mask : array of bool, shape (n, d), the observed joints
+    x : array, shape (n,); y : array, shape (n, d) joint units
+    w : array, shape (n,), ω >= 0, or None (every ω = 1)
+    mask : array of bool, shape (n, d), or None (every joint of every via-point)
+        The rows: the observed joints of the via-points of weight ω > 0 (none of a via-point of weight 0).
     noise : float
         ν, the via-point standard deviation in normalized joint units (ω scales the precision).
     n_candidates : int
@@ -138,44 +171,49 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
     -------
     LatentGaussian with ``linear`` set; ``mean`` = the candidate of the highest weight.
     """
-    cfg = net.cfg
-    k_l = cfg.latent_linear
+    k_l = net.k_lin
     m, s = context_mean[:k_l], np.sqrt(context_var[:k_l])
     if candidates_nl is None:
         if not net.mlp_reads_z_nl:
             candidates_nl = all_mean[None, k_l:]
         else:
             candidates_nl = _candidates(all_mean[k_l:], all_var[k_l:], n_candidates, seed)
-    keep = (w > 0)[:, None] & mask  # the rows: observed joints of via-points of weight > 0
-    if keep.all():  # every joint of every via-point: rows in (via-point, joint) order without indexing
+    if mask is None or mask.all():  # every joint of every via-point: rows in (via-point, joint) order
         lin_b, lin_a = net.linear_design(x)  # (n, d), (n, d, k_l)
-        off = net.decode_nonlinear(candidates_nl, x) + lin_b  # (C, n, d)
+        off = net.decode_nonlinear(candidates_nl, x)  # (C, n, d)
+        off += lin_b
+        sigma = noise * net.y_std if w is None else noise * net.y_std / np.sqrt(w)[:, None]  # (d,) or (n, d)
         h = lin_a.reshape(-1, k_l)  # (M, k_l)
-        sigma = (noise * net.y_std[None, :] / np.sqrt(w)[:, None]).reshape(-1)  # (M,)
-        r = (y[None] - off).reshape(off.shape[0], -1)  # (C, M)
-    elif keep.any():
-        rows = keep.any(1)
+        g = (lin_a * (s / sigma[..., None])).reshape(h.shape)  # whitened design
+        r = np.subtract(y, off, out=off)  # (C, n, d)
+        d = r - lin_a @ m
+        d /= sigma  # whitened residuals of the candidates
+        r, d = r.reshape(r.shape[0], -1), d.reshape(r.shape[0], -1)  # (C, M)
+    else:
+        rows = mask.any(1)
         lin_b, lin_a = net.linear_design(x[rows])
         off = net.decode_nonlinear(candidates_nl, x[rows]) + lin_b
-        sel = keep[rows]
+        sel = mask[rows]
         h = lin_a[sel]
-        sigma = (noise * net.y_std[None, :] / np.sqrt(w[rows])[:, None])[sel]
+        w_rows = np.ones(sel.shape[0]) if w is None else w[rows]
+        sigma = (noise * net.y_std / np.sqrt(w_rows)[:, None])[sel]
         r = (y[rows][None] - off)[:, sel]
-    else:
-        h, sigma, r = np.zeros((0, k_l)), np.ones(0), np.zeros((candidates_nl.shape[0], 0))
-    g = h * (s / sigma[:, None])  # whitened design
-    d = (r - h @ m) / sigma  # whitened residuals of the candidates
-    if not np.isfinite(g.sum() + d.sum()):
-        return _overflow(cfg.latent_dim, context_mean, context_var)
+        g = h * (s / sigma[:, None])  # whitened design
+        d = r - h @ m
+        d /= sigma  # whitened residuals of the candidates
+    single = candidates_nl.shape[0] == 1
     try:
-        form, chol, u, loglik, qdiag = whitened_posterior(g, d)
-    except np.linalg.LinAlgError as exc:  # I + GGᵀ is positive definite unless rounding breaks it
+        form, chol, u, loglik, qdiag = whitened_posterior(g, d, with_loglik=not single)
+    except np.linalg.LinAlgError as exc:  # I + GGᵀ is positive definite unless rounding or an overflow breaks it
+        if not np.isfinite(g.sum() + d.sum()):
+            return _overflow(net.cfg.latent_dim, context_mean, context_var)
         raise ValueError(f"the exact conditioning of the linear latent block failed ({exc}) with via-point noise "
                          f"{noise:g}: expected via-points of the size of the training data and a noise of at least "
                          "about 1e-10 (normalized joint units)") from None
-    if not np.isfinite(loglik.sum() + u.sum()):
-        return _overflow(cfg.latent_dim, context_mean, context_var)
-    if loglik.shape[0] == 1:
+    # an overflow in G or d ends here (or in the factorization)
+    if not np.isfinite(u.sum() if single else loglik.sum() + u.sum()):
+        return _overflow(net.cfg.latent_dim, context_mean, context_var)
+    if single:
         weights, best = np.ones(1), 0
     else:
         weights = np.exp(loglik - loglik.max())
@@ -203,7 +241,7 @@ def linear_block_variance(block: LinearBlock, jac: np.ndarray) -> np.ndarray:
     form), per row; shape (n,), >= 0."""
     a = jac * block.scale
     if block.form == "information":
-        b = _lower_solve(block.chol, np.ascontiguousarray(a.T))
+        b = _lower_solve(block.chol, a.T)
         return np.einsum("kn,kn->n", b, b)
     out = np.einsum("nk,nk->n", a, a)
     if block.design.shape[0]:
@@ -272,7 +310,7 @@ def refine_split(net: "NumpyNet", latent: LatentGaussian, x: np.ndarray, y: np.n
         try:
             with np.errstate(all="ignore"):
                 lat = condition_split(net, latent.context_mean, latent.context_var, latent.mean, latent.var, x, y,
-                                      np.ones(x.shape[0]), mask, noise, candidates_nl=cands)
+                                      None, mask, noise, candidates_nl=cands)
             err = error(lat)
         except ValueError:  # the factorization failed at this noise
             reason = "the conditioning's factorization failed at a smaller noise"

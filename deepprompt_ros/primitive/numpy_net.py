@@ -75,6 +75,7 @@ class NumpyNet:
             bw = net.basis.weight.detach().double().numpy().reshape(nb, d, k_a) * ystd[None, :, None]
             self._basis_b = net.basis.bias.detach().double().numpy().reshape(nb, d) * ystd[None, :]
             self._basis_A = np.ascontiguousarray(bw)
+            self._basis_A_rows = self._basis_A.reshape(nb, d * k_a)  # Φ(x) @ this: Φ(x) A as (T, d·k_a)
             self._basis_AT = np.ascontiguousarray(bw.reshape(nb * d, k_a).T)
         self._phi_cache: dict[bytes, np.ndarray] = {}
         k_n = self.cfg.latent_nonlinear
@@ -130,6 +131,10 @@ class NumpyNet:
     def decode(self, z, x) -> np.ndarray:
         """μ_y(z, x) in joint units: z (k,) → (T, d), z (n, k) → (n, T, d); x (T,)."""
         z = np.asarray(z, dtype=np.float64)
+        if self._no_mlp:  # the linear part and the joints' mean alone
+            out = self._linear_part(z, x)
+            out += self._b3
+            return out
         out = self.decode_nonlinear(z[..., self.k_lin:], x)
         if self.cfg.decoder_basis:
             out += self._linear_part(z, x)
@@ -141,7 +146,9 @@ class NumpyNet:
         linear basis; with ``latent_linear`` 0, z_nl is all of z.) A residual decoder with s = 0 has no
         MLP part (its output layer is 0): the MLP is not evaluated."""
         if self._no_mlp:
-            return np.broadcast_to(self._b3, (*z_nl.shape[:-1], np.shape(x)[0], self._b3.shape[0])).copy()
+            out = np.empty((*z_nl.shape[:-1], np.shape(x)[0], self._b3.shape[0]))
+            out[...] = self._b3
+            return out
         pre_x = self._layer1_phase(x)  # (T, h)
         if z_nl.ndim == 1:
             h = pre_x + z_nl @ self._W1zT
@@ -154,8 +161,7 @@ class NumpyNet:
         """The linear part at phases x (n,) in joint units: Φ(x) b (n, d) and its matrix in z_lin,
         Φ(x) A (n, d, k_l), so the part is Φ(x) b + Φ(x) A z_lin (``latent_linear`` > 0 only)."""
         phi = self._phi(x)
-        nb, d, k_l = self._basis_A.shape
-        return phi @ self._basis_b, (phi @ self._basis_A.reshape(nb, d * k_l)).reshape(-1, d, k_l)
+        return phi @ self._basis_b, (phi @ self._basis_A_rows).reshape(-1, *self._basis_A.shape[1:])
 
     @staticmethod
     def _per_grid(cache: dict, x, compute: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:

@@ -264,34 +264,32 @@ class PrimitiveServerCore:
             cweights[c.modality] = [w]
 
         # ---- aggregate (paper Eq. 1 / Eq. 3 with importance weights); a split latent's linear block is
-        # conditioned exactly with the planner's via-point noise (parameter via_noise); an overflow of
-        # finite but huge inputs is refused by the model with the values that caused it
+        # conditioned exactly with the planner's via-point noise (parameter via_noise) and, unless Eq. 5
+        # refinement is asked for, conditioned again while a via-point is missed (no gradient stage); an
+        # overflow of finite but huge inputs is refused by the model with the values that caused it
         exact = model.exact_conditioning
+        inputs = (vx if n else None, vy if n else None, vw if n else None, vmask if n else None, contexts or None,
+                  cweights or None, images, image_weight)
+        via_noise = (cfg.via_noise or None) if exact else None
         try:
-            latent = model.condition(vx if n else None, vy if n else None, vw if n else None,
-                                     vmask if n else None, contexts or None, cweights or None,
-                                     images, image_weight, via_noise=(cfg.via_noise or None) if exact else None)
+            if req.refine:
+                latent = model.condition(*inputs, via_noise=via_noise)
+            else:
+                planned = model.condition_planner(*inputs, via_noise=via_noise, tol=tol, max_iterations=iters,
+                                                  time_budget=cfg.refine_time_budget)
         except ValueError as exc:
             raise RequestError(Code.INVALID_REQUEST, str(exc)) from None
 
-        # ---- error of the executed mean at the via-points, optional refinement (paper Eq. 5)
+        # ---- error of the executed mean at the via-points (of weight > 0), optional refinement (paper Eq. 5)
         active = vw > 0
         iterations, reason, out_of_time = 0, "", False
-        if active.any():
-            xa, ya, ma = vx[active], vy[active], vmask[active]
-            if req.refine:
-                res = model.refine(latent, xa, ya, ma, max_iterations=iters, tol=tol,
-                                   time_budget=cfg.refine_time_budget)
-                latent, iterations, reason, out_of_time = res.latent, res.iterations, res.reason, res.out_of_time
-                max_err = res.max_error
-            elif exact:  # the planner's via-points met by exact conditioning alone (no gradient stage)
-                max_err = latent.linear.via_error  # of the active via-points' observed joints, as conditioned
-                if max_err > tol:
-                    lin = model.refine_linear(latent, xa, ya, ma, tol=tol, max_iterations=iters,
-                                              time_budget=cfg.refine_time_budget)
-                    latent, iterations, max_err = lin.latent, lin.iterations, lin.max_error
-            else:
-                max_err = float(np.abs((model.decode(latent.mean, xa) - ya)[ma]).max())
+        if not req.refine:
+            latent, max_err, iterations = planned.latent, planned.via_error, planned.iterations
+        elif active.any():
+            res = model.refine(latent, vx[active], vy[active], vmask[active], max_iterations=iters, tol=tol,
+                               time_budget=cfg.refine_time_budget)
+            latent, iterations, reason, out_of_time = res.latent, res.iterations, res.reason, res.out_of_time
+            max_err = res.max_error
         else:
             max_err = 0.0
         reachable = max_err <= tol
