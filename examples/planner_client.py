@@ -37,7 +37,8 @@ def main(argv=None) -> int:
     node = rclpy.create_node("planner_client")
     ex = MultiThreadedExecutor()
     ex.add_node(node)
-    threading.Thread(target=ex.spin, daemon=True).start()
+    spinner = threading.Thread(target=ex.spin, daemon=True)
+    spinner.start()
     # joint_states and feedback arrive in the executor's threads while this thread reads them: both
     # lists are appended and copied under one lock, and read only from a copy
     lock = threading.Lock()
@@ -115,7 +116,10 @@ def main(argv=None) -> int:
               "at a lower rate than the control loop, so this includes up to one feedback period of motion)")
         return 0 if res.success else 1
     finally:
+        # the spinning thread must have left rclpy before the interpreter exits: a thread still waiting in
+        # the executor then aborts the process ("terminate called without an active exception")
         ex.shutdown()
+        spinner.join(timeout=5.0)
         node.destroy_node()
         rclpy.try_shutdown()
 
