@@ -57,7 +57,12 @@ def test_train_with_no_configuration_selects_records_and_the_model_meets_via_poi
     assert min(r[5] for r in cv["table"] if tuple(r[:4]) == tuple(structure[:4])) == cv["cv_mse"]
     train_ds, _ = ds.split(3, seed=0)  # train()'s split
     again = cv_basis_hyperparameters(train_ds, 100, folds=5, seed=0, structure_noise=PLANNER_VIA_NOISE)
-    assert again["table"] == cv["table"]  # made on the training demos alone
+    # made on the training demos alone: the same rows, the same choices and scores up to the last bits (this
+    # process and train's subprocess may run BLAS with different thread counts, which sum in another order:
+    # up to 4e-9 relative measured on the worst-conditioned rows)
+    assert [r[:5] for r in again["table"]] == [r[:5] for r in cv["table"]]
+    np.testing.assert_allclose(np.array([r[5:] for r in again["table"]], dtype=float),
+                               np.array([r[5:] for r in cv["table"]], dtype=float), rtol=1e-7, atol=0.0)
     for key in ("decoder_basis", "latent_linear", "basis_cov_reg", "basis_cov_reg_units", "via_noise"):
         assert lin[key] == cv[key] == ck.metadata["train_config"][key] == summary["selected"][key], key
     for key in ("decoder_basis", "latent_linear", "basis_cov_reg", "via_noise"):  # the log line names each
