@@ -71,6 +71,9 @@ def test_train_with_no_configuration_selects_records_and_the_model_meets_via_poi
     assert (cfg.decoder_basis, cfg.latent_linear, cfg.via_noise) == (lin["decoder_basis"], lin["latent_linear"],
                                                                      lin["via_noise"])
     assert cfg.latent_dim == cfg.latent_linear + 8  # a nonlinear block of 8 dimensions beside the linear one
+    # the goals spread over a square: one mode, the PPCA of all training demos
+    assert lin["linear_modes"] == lin["modes"]["n_modes"] == summary["selected"]["linear_modes"] == 1
+    assert "linear_modes 1" in chosen[0] and "modes_fallback" not in sel
     # the residual: judged on the 3 validation demos, the decision in the file and in the model
     assert res["n_val"] == 3 and set(res["mse_with"]) == {"start", "5 via-points", "start + contexts"}
     assert res["kept"] == (res["relative_difference"] + res["standard_error"] < 0)

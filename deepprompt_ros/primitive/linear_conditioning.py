@@ -41,7 +41,13 @@ from deepprompt_ros.primitive.latent import LatentGaussian, LinearBlock
 if TYPE_CHECKING:
     from deepprompt_ros.primitive.numpy_net import NumpyNet
 
-__all__ = ["whitened_posterior", "condition_split", "linear_block_variance", "SplitRefinement", "refine_split"]
+__all__ = ["whitened_posterior", "condition_split", "linear_block_variance", "SplitRefinement", "refine_split",
+           "TIE_TOLERANCE"]
+
+#: Candidates of z_nl whose log-likelihoods of the via-points are within this relative amount of the
+#: best are tied (rounding, not evidence: the via-points lie where the MLP does not depend on z_nl);
+#: the executed mean is the first of them, the mean of q(z_nl) when it is among them.
+TIE_TOLERANCE = 1e-9
 
 
 def whitened_posterior(g: np.ndarray, d: np.ndarray, with_loglik: bool = True
@@ -216,9 +222,11 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
     if single:
         weights, best = np.ones(1), 0
     else:
-        weights = np.exp(loglik - loglik.max())
+        top = loglik.max()
+        weights = np.exp(loglik - top)
         weights /= weights.sum()
-        best = int(np.argmax(loglik))
+        # the first candidate within rounding of the best (TIE_TOLERANCE): the same choice on every machine
+        best = int(np.flatnonzero(loglik >= top - TIE_TOLERANCE * max(1.0, abs(top)))[0])
     cands = np.concatenate([m + u * s, candidates_nl], 1)  # (C, k)
     # the best candidate's mean at the observed joints of the via-points: offset + H z_lin (joint units)
     via_error = float(np.abs(r[best] - h @ cands[best, :k_l]).max()) if h.shape[0] else 0.0

@@ -1,12 +1,14 @@
 """The linear part Φ(x)(b + A z) of a residual decoder (``TrainConfig.decoder_basis``): its
-initialization as the PPCA of the demonstrations, the closed-form MAP conditioning of that linear
-model, and the cross-validation of its hyper-parameters on the training demonstrations alone.
-numpy float64 except :func:`init_basis_pca`, which writes into the network.
+initialization as the PPCA of the demonstrations, the modes of the demonstrations' basis weights
+(:func:`weight_modes`, ``TrainConfig.linear_modes``) that the PPCA then leaves to the MLP, the
+closed-form MAP conditioning of that linear model, and the cross-validation of its hyper-parameters
+on the training demonstrations alone. numpy float64 except :func:`init_basis_pca`, which writes into
+the network.
 """
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import numpy as np
 import torch
@@ -17,17 +19,39 @@ from deepprompt_ros.model.phase import phase_basis
 from deepprompt_ros.training.config import AUTO_DECODER_BASIS, BASIS_COV_REG_UNITS
 from deepprompt_ros.training.tensors import TensorData, fit_normalization
 
-__all__ = ["pca_basis", "init_basis_pca", "linear_map_condition", "fold_assignment", "cv_via_sets", "CV_CONDITIONINGS",
+__all__ = ["basis_weights", "pca_basis", "WeightModes", "weight_modes", "mode_dip", "ModeOffsets", "PcaInit",
+           "init_basis_pca",
+           "MAX_MODES", "MODE_VARIANCE", "MODE_DEMOS_PER_DIM", "MODE_DIP", "MODE_MIN_SHARE", "MODE_MIN_DEMOS",
+           "linear_map_condition", "fold_assignment", "cv_via_sets", "CV_CONDITIONINGS",
            "cv_score", "PROMP_FORM", "AUTO_DECODER_BASIS", "AUTO_LATENT_LINEAR", "AUTO_COV_REGS", "CV_VIA_NOISES",
            "cv_basis_hyperparameters"]
 
 
+def basis_weights(phi: np.ndarray, y: np.ndarray, ridge: float = 1e-6) -> np.ndarray:
+    """Per demo the ridge-regression weights of the basis, (Φᵀ Φ + r I) W_i = Φᵀ y_i with r =
+    ``ridge`` · mean(diag ΦᵀΦ).
+
+    phi : (T, n_b) basis at the demos' phases; y : (D, T, d) demos. Returns (D, n_b·d), rows b·d + j."""
+    gram = phi.T @ phi
+    gram = gram + ridge * np.trace(gram) / gram.shape[0] * np.eye(gram.shape[0])
+    w = np.linalg.solve(gram, np.einsum("tb,ntd->nbd", phi, y))  # (D, n_b, d)
+    return w.reshape(w.shape[0], -1)
+
+
 def pca_basis(phi: np.ndarray, y: np.ndarray, latent_dim: int, cov_reg: float = 0.0,
-              ridge: float = 1e-6, joint_std: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+              ridge: float = 1e-6, joint_std: np.ndarray | None = None, labels: np.ndarray | None = None,
+              offset_var: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The PPCA of demonstrations in a basis (numpy, float64) — the computation behind
-    :func:`init_basis_pca`: per demo the ridge-regression weights W_i (rows b·d + j), b = their mean,
-    the k = ``latent_dim`` columns of A = the top-k eigenvectors of their covariance C + R times the
-    square root of the eigenvalue.
+    :func:`init_basis_pca`: per demo the ridge-regression weights W_i (:func:`basis_weights`), b =
+    their mean, the k = ``latent_dim`` columns of A = the top-k eigenvectors of their covariance C + R
+    times the square root of the eigenvalue.
+
+    ``labels`` (D,) — the mode of each demo (:func:`weight_modes`): C is then the pooled within-mode
+    covariance, of each W_i minus its mode's mean (D − K degrees of freedom), so z ~ N(0, I) spans
+    the variation inside a mode and not the offsets between the modes; b stays the mean of all.
+    The offsets are then the MLP residual's, known to within a standard deviation of
+    sqrt(``offset_var``) at each phase (normalized units): C gets ``offset_var`` / mean_x ‖Φ(x)‖² on
+    its diagonal, which adds about ``offset_var`` to the linear part's variance at every phase.
 
     The regularizer R (``basis_cov_reg_units``): with ``joint_std`` None, R = λI in the normalized
     units of ``y``, λ = ``cov_reg`` · mean(diag C); with ``joint_std`` (d,) — the joints' normalization
@@ -45,23 +69,27 @@ def pca_basis(phi: np.ndarray, y: np.ndarray, latent_dim: int, cov_reg: float = 
     -------
     mean (n_b·d,), a (n_b·d, k), scale (k,) — the columns' standard deviations (0 beyond n_b·d)
     """
-    gram = phi.T @ phi
-    gram = gram + ridge * np.trace(gram) / gram.shape[0] * np.eye(gram.shape[0])
-    w = np.linalg.solve(gram, np.einsum("tb,ntd->nbd", phi, y))  # (D, n_b, d)
-    n_b, d = w.shape[1], w.shape[2]
-    w = w.reshape(w.shape[0], -1)
+    d = y.shape[2]
+    w = basis_weights(phi, y, ridge)
+    n_b = w.shape[1] // d
     mean = w.mean(0)
+    if labels is None:
+        dev, dof, floor = w - mean, max(1, w.shape[0] - 1), 0.0
+    else:
+        groups = np.unique(labels, return_inverse=True)[1]
+        centres = np.stack([w[groups == g].mean(0) for g in range(groups.max() + 1)])
+        dev, dof = w - centres[groups], max(1, w.shape[0] - centres.shape[0])
+        floor = offset_var / float(np.mean((phi ** 2).sum(1)))
     if joint_std is None:
-        _, sv, vt = np.linalg.svd(w - mean, full_matrices=True)  # vt: all n_b·d directions, data span first
+        _, sv, vt = np.linalg.svd(dev, full_matrices=True)  # vt: all n_b·d directions, data span first
         eig = np.zeros(vt.shape[0])
-        eig[: sv.size] = sv ** 2 / max(1, w.shape[0] - 1)
-        eig += cov_reg * eig.sum() / eig.size
+        eig[: sv.size] = sv ** 2 / dof
+        eig += cov_reg * eig.sum() / eig.size + floor
     else:
         std = np.tile(np.asarray(joint_std, dtype=np.float64).reshape(d), n_b)  # row b·d + j → std of joint j
-        dev = w - mean
-        cov = dev.T @ dev / max(1, w.shape[0] - 1)
+        cov = dev.T @ dev / dof
         lam = cov_reg * float(np.mean(np.diag(cov) * std ** 2))
-        eig, vec = np.linalg.eigh(cov + np.diag(lam / std ** 2))
+        eig, vec = np.linalg.eigh(cov + np.diag(lam / std ** 2 + floor))
         eig, vt = np.clip(eig[::-1], 0.0, None), vec[:, ::-1].T  # largest first
     r = min(latent_dim, vt.shape[0])
     scale = np.zeros(latent_dim)
@@ -71,9 +99,178 @@ def pca_basis(phi: np.ndarray, y: np.ndarray, latent_dim: int, cov_reg: float = 
     return mean, a, scale
 
 
+#: The mode analysis of :func:`weight_modes` (``TrainConfig.linear_modes`` under ``auto_select``):
+#: mixtures of 1 … ``MAX_MODES`` Gaussians with one shared covariance (the within-mode covariance the
+#: linear part holds) fitted to the leading principal components of the demos' basis weights — as many
+#: as explain ``MODE_VARIANCE`` of their variance, at most one per ``MODE_DEMOS_PER_DIM`` demos — and
+#: compared by BIC. A mixture counts only when its components are modes: every two are separated by
+#: a dip of their mixture's density to at most ``MODE_DIP`` of the lower of its values at their means
+#: (two equal components: means 4.9 within-mode standard deviations apart; the two halves of a
+#: uniform spread, which BIC alone may split, dip to 0.44), and each holds at least ``MODE_MIN_SHARE``
+#: of the demos and ``MODE_MIN_DEMOS`` of them (a few outlying demos are no mode).
+MAX_MODES = 4
+MODE_VARIANCE = 0.9
+MODE_DEMOS_PER_DIM = 10
+MODE_DIP = 0.1
+MODE_MIN_SHARE = 0.1
+MODE_MIN_DEMOS = 3
+_MODE_INITS = 10  # k-means++ starts of each mixture's EM; the best likelihood is kept
+
+
+class WeightModes(NamedTuple):
+    """The modes of the demonstrations' basis weights (:func:`weight_modes`).
+
+    Attributes
+    ----------
+    n_modes : int
+        K, 1 when the weights form one group.
+    labels : array of int, shape (D,)
+        The mode of each demo (all 0 when K = 1).
+    record : dict
+        The criterion and its values (JSON types): the principal components used, per K the BIC,
+        the mode sizes, the largest dip ratio of two modes and whether that K was admissible.
+    """
+
+    n_modes: int
+    labels: np.ndarray
+    record: dict
+
+
+def mode_dip(separation: float, share_a: float, share_b: float, n_grid: int = 201) -> float:
+    """How far the density of a two-component mixture with one shared covariance falls between the
+    components' means: its minimum on the segment between them over the lower of its values at the
+    two means (1: no dip, one mode; → 0: two separated modes). Along that segment the density is, up
+    to a common factor, p(t) = π_a exp(−t²Δ²/2) + π_b exp(−(1 − t)²Δ²/2), Δ = ``separation`` the
+    Mahalanobis distance of the means under the shared covariance and π = the components' shares."""
+    t = np.linspace(0.0, 1.0, n_grid)
+    p = share_a * np.exp(-0.5 * (t * separation) ** 2) + share_b * np.exp(-0.5 * ((1.0 - t) * separation) ** 2)
+    return float(p.min() / min(p[0], p[-1]))
+
+
+def weight_modes(w: np.ndarray, seed: int = 0, n_modes: int | None = None) -> WeightModes:
+    """The modes of the basis weights ``w`` (D, P) of D demonstrations (:func:`basis_weights`).
+
+    The weights are reduced to their r leading principal components (:data:`MODE_VARIANCE`,
+    :data:`MODE_DEMOS_PER_DIM`) and mixtures of K Gaussians with one shared covariance are fitted by EM
+    (:data:`_MODE_INITS` k-means++ starts seeded by ``seed``). With ``n_modes`` None, K is the one of the
+    lowest BIC (Schwarz, "Estimating the dimension of a model", Ann. Stat. 6(2), 1978: −2 log L + p log D,
+    p = K r + r(r + 1)/2 + K − 1) among K = 1 and the admissible K of 2 … :data:`MAX_MODES`: those
+    whose components are modes (:data:`MODE_DIP`, :func:`mode_dip`) of enough demos
+    (:data:`MODE_MIN_SHARE`, :data:`MODE_MIN_DEMOS`). With ``n_modes`` given, that K is fitted as is.
+    Each demo's mode is its most probable component. Deterministic in ``seed``.
+    """
+    w = np.asarray(w, dtype=np.float64)
+    n = w.shape[0]
+    if n_modes is not None and not 1 <= n_modes <= n:
+        raise ValueError(f"n_modes = {n_modes!r}: expected 1 <= n_modes <= {n} (the demonstrations)")
+    if n_modes == 1:
+        return WeightModes(1, np.zeros(n, dtype=int), {"n_modes": 1, "criterion": "one group (n_modes 1)"})
+    _, sv, vt = np.linalg.svd(w - w.mean(0), full_matrices=False)
+    total = float(sv @ sv)
+    if total <= 0.0:
+        return WeightModes(1, np.zeros(n, dtype=int), {"n_modes": 1, "criterion": "the weights do not vary"})
+    r = int(min(np.searchsorted(np.cumsum(sv ** 2) / total, MODE_VARIANCE) + 1, max(1, n // MODE_DEMOS_PER_DIM)))
+    x = (w - w.mean(0)) @ vt[:r].T  # (D, r) principal component scores
+    min_size = max(MODE_MIN_DEMOS, math.ceil(MODE_MIN_SHARE * n))
+    ks = [n_modes] if n_modes is not None else [1] + [k for k in range(2, MAX_MODES + 1) if k * min_size <= n]
+    fits, rows = {}, {}
+    for k in ks:
+        loglik, shares, means, cov, resp = _tied_mixture(x, k, seed)
+        labels = resp.argmax(1)
+        sizes = np.bincount(labels, minlength=k)
+        chol = np.linalg.cholesky(cov)
+        dip = max((mode_dip(float(np.linalg.norm(np.linalg.solve(chol, means[a] - means[b]))), shares[a], shares[b])
+                   for a in range(k) for b in range(a + 1, k)), default=None)
+        bic = -2.0 * loglik + (k * r + r * (r + 1) / 2 + k - 1) * math.log(n)
+        ok = k == 1 or (dip <= MODE_DIP and int(sizes.min()) >= min_size)
+        fits[k] = labels
+        rows[str(k)] = {"bic": bic, "sizes": sizes.tolist(), "dip": dip, "admissible": bool(ok)}
+    best = n_modes if n_modes is not None else min((k for k in ks if rows[str(k)]["admissible"]),
+                                                   key=lambda k: rows[str(k)]["bic"])
+    labels = np.unique(fits[best], return_inverse=True)[1] if best > 1 else np.zeros(n, dtype=int)
+    record = {"n_modes": int(labels.max() + 1),
+              "criterion": f"BIC of Gaussian mixtures with one shared covariance on the {r} leading principal "
+                           f"components of the {n} demonstrations' basis weights; modes dip to <= {MODE_DIP:g} "
+                           f"and hold >= {min_size} demonstrations",
+              "principal_components": r, "mixtures": rows}
+    return WeightModes(record["n_modes"], labels, record)
+
+
+def _tied_mixture(x: np.ndarray, k: int, seed: int, iterations: int = 500, rel_tol: float = 1e-10):
+    """EM for a mixture of ``k`` Gaussians with one shared covariance on the rows of ``x`` (n, r), the
+    best log-likelihood of :data:`_MODE_INITS` k-means++ starts (Arthur & Vassilvitskii, SODA 2007).
+    The covariance gets 1e-6 of the mean variance on its diagonal (a mode of identical demos stays
+    finite). Returns (log-likelihood, shares (k,), means (k, r), covariance (r, r), responsibilities (n, k))."""
+    n, r = x.shape
+    floor = 1e-6 * float(np.mean(x.var(0))) * np.eye(r)
+    best = None
+    for start in range(_MODE_INITS):
+        rng = np.random.default_rng([seed, k, start])
+        centres = x[[rng.integers(n)]]
+        while centres.shape[0] < k:
+            d2 = ((x[:, None] - centres[None]) ** 2).sum(-1).min(1)
+            centres = np.vstack([centres, x[rng.choice(n, p=d2 / d2.sum()) if d2.sum() > 0 else rng.integers(n)]])
+        resp = np.eye(k)[((x[:, None] - centres[None]) ** 2).sum(-1).argmin(1)]
+        previous = -np.inf
+        for _ in range(iterations):
+            counts = np.maximum(resp.sum(0), 1e-12)
+            shares, means = counts / n, (resp.T @ x) / counts[:, None]
+            dev = x[:, None, :] - means[None]  # (n, k, r)
+            cov = np.einsum("nk,nki,nkj->ij", resp, dev, dev) / n + floor
+            chol = np.linalg.cholesky(cov)
+            maha = (np.linalg.solve(chol, dev.reshape(-1, r).T) ** 2).sum(0).reshape(n, k)
+            logp = np.log(shares) - 0.5 * maha - np.log(np.diag(chol)).sum() - 0.5 * r * math.log(2.0 * math.pi)
+            top = logp.max(1, keepdims=True)
+            loglik = float((top[:, 0] + np.log(np.exp(logp - top).sum(1))).sum())
+            resp = np.exp(logp - top)
+            resp /= resp.sum(1, keepdims=True)
+            if loglik - previous <= rel_tol * abs(loglik):
+                break
+            previous = loglik
+        if best is None or loglik > best[0]:
+            best = (loglik, shares, means, cov, resp)
+    return best
+
+
+class ModeOffsets(NamedTuple):
+    """What the MLP residual of a linear part taken within K > 1 modes is trained towards
+    (:func:`deepprompt_ros.training.objectives.loss_fn`), normalized units.
+
+    Attributes
+    ----------
+    offsets : torch.Tensor, shape (D, T, d)
+        Per training demo its mode's mean trajectory minus Φ(x) b at the data's phases.
+    var : torch.Tensor, shape (T, d)
+        The variance of the linear part's prior at each phase and joint, diag(Φ(x) A Aᵀ Φ(x)ᵀ), plus
+        ν² (``ModelConfig.via_noise``): the scale at which a via-point there tells the MLP's offsets
+        apart when the exact conditioning weights its z_nl candidates by their marginal likelihood.
+    """
+
+    offsets: torch.Tensor
+    var: torch.Tensor
+
+
+class PcaInit(NamedTuple):
+    """What :func:`init_basis_pca` wrote and what the training needs from it.
+
+    Attributes
+    ----------
+    scale : array, shape (k,)
+        The standard deviations of the columns of A.
+    modes : WeightModes
+        The modes of the training demos' weights the PPCA was taken within.
+    targets : ModeOffsets or None
+        K > 1: the MLP residual's targets; None when K = 1.
+    """
+
+    scale: np.ndarray
+    modes: WeightModes
+    targets: ModeOffsets | None
+
+
 @torch.no_grad()
 def init_basis_pca(net: DeepProMPNet, data: TensorData, cov_reg: float = 0.0, ridge: float = 1e-6,
-                   joint_std: np.ndarray | None = None) -> np.ndarray:
+                   joint_std: np.ndarray | None = None, n_modes: int = 1, seed: int = 0) -> PcaInit:
     """Initialize the decoder's linear part Φ(x)(b + A z) as the PPCA of the training demos
     (``basis_init: pca``): per demo the ridge-regression weights W_i of the basis (normalized units),
     b = their mean, the columns of A = the top-k eigenvectors of their covariance C + λI scaled by
@@ -82,13 +279,29 @@ def init_basis_pca(net: DeepProMPNet, data: TensorData, cov_reg: float = 0.0, ri
     it gives the k − rank(C) directions beyond the demos' span a small variance instead of none.
     With λ = 0 those columns stay 0. ``joint_std`` (the normalization's, rad): λI in rad instead
     (``basis_cov_reg_units: raw``, :func:`pca_basis`). k is ``latent_linear`` when > 0 (A reads z_lin
-    alone), else ``latent_dim``. Returns the standard deviations of the k columns."""
+    alone), else ``latent_dim``.
+
+    ``n_modes`` K > 1 (``linear_modes``): the demos' weights are grouped into K modes
+    (:func:`weight_modes`, seed ``seed``) and C is their within-mode covariance; each mode's offset from
+    b is left to the MLP residual (:attr:`PcaInit.targets`), which the training fits to within the
+    decoder's σ_y (its reconstruction likelihood): σ_y² is the ``offset_var`` of :func:`pca_basis`."""
     phi = net.basis_functions(data.x.double()).numpy()  # (T, n_b)
+    y = data.y.double().numpy()
     k = net.cfg.latent_linear or net.cfg.latent_dim  # the columns of A: z_lin's, or all of z's
-    mean, a, scale = pca_basis(phi, data.y.double().numpy(), k, cov_reg, ridge, joint_std)
+    w = basis_weights(phi, y, ridge)
+    modes = weight_modes(w, seed, n_modes)
+    labels = modes.labels if modes.n_modes > 1 else None
+    mean, a, scale = pca_basis(phi, y, k, cov_reg, ridge, joint_std, labels, net.cfg.sigma_y ** 2)
     net.basis.bias.copy_(torch.as_tensor(mean, dtype=torch.float32))
     net.basis.weight.copy_(torch.as_tensor(a, dtype=torch.float32))
-    return scale
+    if labels is None:
+        return PcaInit(scale, modes, None)
+    n, n_b, d = y.shape[0], phi.shape[1], y.shape[2]
+    offsets = np.stack([w[labels == g].mean(0) for g in range(modes.n_modes)]) - mean  # (K, n_b·d)
+    trajectories = np.einsum("tb,nbd->ntd", phi, offsets[labels].reshape(n, n_b, d))
+    var = (np.einsum("tb,bdk->tdk", phi, a.reshape(n_b, d, k)) ** 2).sum(-1) + net.cfg.via_noise ** 2
+    return PcaInit(scale, modes, ModeOffsets(torch.as_tensor(trajectories, dtype=torch.float32),
+                                             torch.as_tensor(var, dtype=torch.float32)))
 
 
 def linear_map_condition(phi_all: np.ndarray, mean: np.ndarray, a: np.ndarray, sel: np.ndarray, y_via: np.ndarray,

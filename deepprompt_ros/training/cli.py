@@ -62,7 +62,7 @@ def main(argv=None) -> int:
     best = min(h["val"]["mean"] for h in hist)
     print(f"best validation MSE {best:.3e} rad²; checkpoint written to {pathlib.Path(args.out).resolve()}")
     trained = info["train_config"]
-    chosen = {k: trained[k] for k in ("decoder_basis", "latent_linear", "latent_dim", "basis_cov_reg",
+    chosen = {k: trained[k] for k in ("decoder_basis", "latent_linear", "latent_dim", "basis_cov_reg", "linear_modes",
                                       "basis_cov_reg_units", "via_noise", "residual_scale")} if cfg.auto_select else {}
     print(json.dumps({"out": str(pathlib.Path(args.out).resolve()), "best_val_mse_rad2": best, "selected": chosen}))
     return 0

@@ -51,13 +51,18 @@ class TrainConfig:
     # -- model selection on the training demonstrations
     auto_select: bool = param(True, "choose the decoder from the training demos (never held-out ones): "
                                     "decoder_basis, latent_linear, basis_cov_reg, basis_cov_reg_units and "
-                                    "via_noise by cross-validation of the linear part, latent_dim = latent_linear "
-                                    "+ latent_nonlinear, the linear part initialized as their PPCA and kept "
-                                    "fixed (basis_init pca, basis_lr_scale 0), then the MLP residual kept "
-                                    "(residual_scale) or dropped (0) on the validation demos; the file's values "
-                                    "of those keys are not used. false: every key as given")
+                                    "via_noise by cross-validation of the linear part, linear_modes by the modes "
+                                    "of the demos' basis weights, latent_dim = latent_linear + latent_nonlinear "
+                                    "(latent_linear + linear_modes - 1 with several modes), the linear part "
+                                    "initialized as their PPCA and kept fixed (basis_init pca, "
+                                    "basis_lr_scale 0), then the MLP residual kept (residual_scale) or dropped (0) "
+                                    "on the validation demos (dropped with linear_modes > 1: trained again with "
+                                    "linear_modes 1); the file's values of those keys are not used. false: every "
+                                    "key as given")
     latent_nonlinear: int = param(8, "with auto_select: k_n, the latent dimensions only the MLP reads (the "
-                                     "nonlinear block that can hold several modes)", min=1)
+                                     "nonlinear block that can hold several modes) when the demos form one mode; "
+                                     "with linear_modes K > 1 the block has K - 1 dimensions, the offsets between "
+                                     "the modes", min=1)
     cv_folds: int = param(5, "with auto_select: folds of the cross-validation (at most one per training "
                              "demonstration)", min=2)
     residual_folds: int = param(0, "with auto_select: 0 = judge the MLP residual on the validation demos; K >= 2 "
@@ -73,6 +78,12 @@ class TrainConfig:
                                       "span a small variance (0 = none)", min=0.0)
     basis_cov_reg_units: str = param("normalized", "units of basis_cov_reg's λI: 'normalized' joint units, or "
                                                    "'raw' (rad, ProMP's regularizer)", choices=BASIS_COV_REG_UNITS)
+    linear_modes: int = param(1, "K, the modes of the training demos' basis weights (training/basis.weight_modes) "
+                                 "the decoder treats apart: 1 = the linear part is the PPCA of all demos; K > 1 = "
+                                 "the PPCA of each demo's weights minus its mode's mean, plus the decoder's sigma_y "
+                                 "at every phase (A spans the variation inside a mode), and the MLP residual is "
+                                 "trained also towards each demo's mode mean minus b (it holds the offsets between "
+                                 "the modes); needs basis_init pca", min=1)
     # -- objective
     objective: str = param("paper", "'np': Neural-Process form, z from all inputs and β KL(q(z | all) ‖ q(z | "
                                  "subset)); 'paper': the paper's rewritten ELBO, z from the subset and β Σ_i "
@@ -125,6 +136,9 @@ class TrainConfig:
         validate(self, rules=lambda c: [
             decoder_basis_error(c.decoder_basis),
             *latent_linear_errors(c.latent_linear, c.latent_dim, c.decoder_basis, n_joints=c.latent_linear),
+            "" if c.linear_modes == 1 or c.auto_select or (c.decoder_basis and c.basis_init == "pca") else
+            f"linear_modes = {c.linear_modes!r} needs the PCA initialization of a linear part: expected "
+            "decoder_basis >= 2 and basis_init pca (or linear_modes 1)",
             "" if c.residual_folds != 1 else
             "residual_folds = 1: expected 0 (the validation demos) or >= 2 folds",
             "" if not c.auto_select or c.n_points >= 2 * min(AUTO_DECODER_BASIS) else

@@ -21,7 +21,7 @@ from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
 from deepprompt_ros.training.basis import init_basis_pca
 from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.objectives import loss_fn, validation_mse
-from deepprompt_ros.training.selection import judge_residual, select_linear_part
+from deepprompt_ros.training.selection import judge_residual, nonlinear_dims, select_linear_part
 from deepprompt_ros.training.tensors import fit_normalization, to_tensors
 
 __all__ = ["train"]
@@ -31,11 +31,13 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
           info: dict | None = None):
     """Train on ``ds`` (a validation split is held out unless ``val_ds`` is given).
 
-    With ``cfg.auto_select`` the linear part is chosen on the training split before training
-    (:func:`~deepprompt_ros.training.selection.select_linear_part`) and the MLP residual kept or
-    dropped on the validation split after it by the energy score of conditioned samples
-    (:func:`~deepprompt_ros.training.selection.judge_residual`);
-    every choice is logged in one line and recorded in the checkpoint's metadata (``selection``,
+    With ``cfg.auto_select`` the linear part and the modes of the demos are chosen on the training
+    split before training (:func:`~deepprompt_ros.training.selection.select_linear_part`) and the MLP
+    residual kept or dropped on the validation split after it by the energy score of conditioned
+    samples (:func:`~deepprompt_ros.training.selection.judge_residual`). A residual dropped beside a
+    linear part taken within K > 1 modes (which alone would hold one mode's variation, not the
+    modes) sends the training back to K = 1, the PPCA of all demos, and its residual is judged again.
+    Every choice is logged in one line and recorded in the checkpoint's metadata (``selection``,
     and ``train_config`` holds the configuration actually trained).
 
     ``info``, when given, receives the checkpoint's metadata entries ``train_config`` and ``selection``.
@@ -44,8 +46,8 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
     -------
     net : DeepProMPNet (best validation weights), norm : Normalization, history : list of dict
     """
-    torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
+    t0 = time.perf_counter()
     if val_ds is None:
         n_val = cfg.n_val or max(1, len(ds) // 10)
         train_ds, val_ds = ds.split(n_val, seed=cfg.seed)
@@ -54,59 +56,19 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
     selection = {}
     if cfg.auto_select:
         cfg, selection["linear_part"] = select_linear_part(train_ds, cfg, len(ds.joint_names))
-    norm = fit_normalization(train_ds, cfg.n_points)
-    data = to_tensors(train_ds, norm, cfg.n_points)
-    val = to_tensors(val_ds, norm, cfg.n_points)
-    mcfg = ModelConfig(n_joints=len(ds.joint_names), phase_type=ds.phase_type, latent_dim=cfg.latent_dim,
-                       hidden=cfg.hidden, context_dims=tuple(ds.context_dims.items()), image_shape=ds.image_shape,
-                       sigma_y=cfg.sigma_y, var_floor=cfg.var_floor, phase_harmonics=cfg.phase_harmonics,
-                       decoder_basis=cfg.decoder_basis, basis_width=cfg.basis_width,
-                       residual_scale=cfg.residual_scale, variance_head=cfg.variance_head,
-                       latent_linear=cfg.latent_linear, via_noise=cfg.via_noise)
-    net = DeepProMPNet(mcfg)
-    if cfg.decoder_basis and cfg.basis_init == "pca":
-        init_basis_pca(net, data, cfg.basis_cov_reg,
-                       joint_std=np.asarray(norm.y_std) if cfg.basis_cov_reg_units == "raw" else None)
-    if cfg.decoder_basis:  # the linear part learns at lr · basis_lr_scale (0: kept as initialized)
-        rest = [p for n, p in net.named_parameters() if not n.startswith("basis.")]
-        groups = [{"params": rest}]
-        if cfg.basis_lr_scale > 0:
-            groups.append({"params": list(net.basis.parameters()), "lr": cfg.lr * cfg.basis_lr_scale})
-        else:
-            net.basis.requires_grad_(False)
-        opt = torch.optim.Adam(groups, lr=cfg.lr)
-    else:
-        opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
-    gen = torch.Generator().manual_seed(cfg.seed)
-    history, best, best_state = [], math.inf, None
-    t0 = time.perf_counter()
-    n_train = data.y.shape[0]
-    for step in range(1, cfg.steps + 1):
-        idx = torch.randint(0, n_train, (cfg.batch_size,), generator=gen)
-        beta = cfg.beta * min(1.0, step / max(1, cfg.kl_anneal_steps))  # KL annealing
-        loss, nll, kl, cons = loss_fn(net, cfg, data, idx, gen, beta)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        if step % cfg.val_every == 0 or step == cfg.steps:
-            v = validation_mse(net, cfg, val, norm)
-            elapsed = time.perf_counter() - t0
-            rec = {"step": step, "loss": loss.item(), "nll": nll, "kl": kl, "consistency": cons, "beta": beta, "val": v,
-                   "samples_per_s": step * cfg.batch_size / elapsed}
-            history.append(rec)
-            mark = ""
-            if v["mean"] < best:
-                best, best_state, mark = v["mean"], {k: t.clone() for k, t in net.state_dict().items()}, " *best"
-            log(f"step {step:6d}/{cfg.steps}  loss {loss.item():10.3f}  nll {nll:9.3f}  kl {kl:8.3f}  "
-                f"val_mse {v['mean']:.3e} rad²  {rec['samples_per_s']:.0f} traj/s{mark}")
-    net.load_state_dict(best_state)
-    net.eval()
+    net, norm, history, best = _fit(train_ds, val_ds, cfg, log)
     if cfg.auto_select:
         def refit(fold_ds):  # the residual's cross-validation trains exactly as here, the linear part as chosen
             fold_net, fold_norm, _ = train(fold_ds, dataclasses.replace(cfg, auto_select=False), log=lambda s: None)
             return fold_net, fold_norm
 
         net, selection["residual"] = judge_residual(net, norm, ds.joint_names, val_ds, cfg, train_ds, refit)
+        if not selection["residual"]["kept"] and cfg.linear_modes > 1:
+            log(f"residual dropped beside the linear part of {cfg.linear_modes} modes: training again with one")
+            selection["modes_fallback"] = {"linear_modes": cfg.linear_modes, "residual": selection.pop("residual")}
+            cfg = dataclasses.replace(cfg, linear_modes=1, latent_dim=cfg.latent_linear + nonlinear_dims(cfg, 1))
+            net, norm, history, best = _fit(train_ds, val_ds, cfg, log)
+            net, selection["residual"] = judge_residual(net, norm, ds.joint_names, val_ds, cfg, train_ds, refit)
         cfg = dataclasses.replace(cfg, residual_scale=net.cfg.residual_scale)
         log(selection_line(selection))
     if info is not None:
@@ -124,6 +86,64 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
     return net, norm, history
 
 
+def _fit(train_ds: DemoDataset, val_ds: DemoDataset, cfg: TrainConfig, log):
+    """The training proper of ``cfg`` (its choices made): initialization (seed ``cfg.seed``; the PCA
+    of the linear part within ``cfg.linear_modes`` modes), ``cfg.steps`` updates, the validation every
+    ``cfg.val_every``. Returns (net with the best validation weights, normalization, history, best
+    validation MSE)."""
+    torch.manual_seed(cfg.seed)
+    norm = fit_normalization(train_ds, cfg.n_points)
+    data = to_tensors(train_ds, norm, cfg.n_points)
+    val = to_tensors(val_ds, norm, cfg.n_points)
+    mcfg = ModelConfig(n_joints=len(train_ds.joint_names), phase_type=train_ds.phase_type, latent_dim=cfg.latent_dim,
+                       hidden=cfg.hidden, context_dims=tuple(train_ds.context_dims.items()),
+                       image_shape=train_ds.image_shape, sigma_y=cfg.sigma_y, var_floor=cfg.var_floor,
+                       phase_harmonics=cfg.phase_harmonics, decoder_basis=cfg.decoder_basis,
+                       basis_width=cfg.basis_width, residual_scale=cfg.residual_scale,
+                       variance_head=cfg.variance_head, latent_linear=cfg.latent_linear, via_noise=cfg.via_noise)
+    net = DeepProMPNet(mcfg)
+    modes = None  # the MLP residual's targets when the linear part is taken within several modes
+    if cfg.decoder_basis and cfg.basis_init == "pca":
+        modes = init_basis_pca(net, data, cfg.basis_cov_reg,
+                               joint_std=np.asarray(norm.y_std) if cfg.basis_cov_reg_units == "raw" else None,
+                               n_modes=cfg.linear_modes, seed=cfg.seed).targets
+    if cfg.decoder_basis:  # the linear part learns at lr · basis_lr_scale (0: kept as initialized)
+        rest = [p for n, p in net.named_parameters() if not n.startswith("basis.")]
+        groups = [{"params": rest}]
+        if cfg.basis_lr_scale > 0:
+            groups.append({"params": list(net.basis.parameters()), "lr": cfg.lr * cfg.basis_lr_scale})
+        else:
+            net.basis.requires_grad_(False)
+        opt = torch.optim.Adam(groups, lr=cfg.lr)
+    else:
+        opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    history, best, best_state = [], math.inf, None
+    t0 = time.perf_counter()
+    n_train = data.y.shape[0]
+    for step in range(1, cfg.steps + 1):
+        idx = torch.randint(0, n_train, (cfg.batch_size,), generator=gen)
+        beta = cfg.beta * min(1.0, step / max(1, cfg.kl_anneal_steps))  # KL annealing
+        loss, nll, kl, cons = loss_fn(net, cfg, data, idx, gen, beta, modes)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if step % cfg.val_every == 0 or step == cfg.steps:
+            v = validation_mse(net, cfg, val, norm)
+            elapsed = time.perf_counter() - t0
+            rec = {"step": step, "loss": loss.item(), "nll": nll, "kl": kl, "consistency": cons, "beta": beta, "val": v,
+                   "samples_per_s": step * cfg.batch_size / elapsed}
+            history.append(rec)
+            mark = ""
+            if v["mean"] < best:
+                best, best_state, mark = v["mean"], {k: t.clone() for k, t in net.state_dict().items()}, " *best"
+            log(f"step {step:6d}/{cfg.steps}  loss {loss.item():10.3f}  nll {nll:9.3f}  kl {kl:8.3f}  "
+                f"val_mse {v['mean']:.3e} rad²  {rec['samples_per_s']:.0f} traj/s{mark}")
+    net.load_state_dict(best_state)
+    net.eval()
+    return net, norm, history, best
+
+
 def selection_line(selection: dict) -> str:
     """The one log line of ``auto_select``'s choices (``selection`` as :func:`train` records it)."""
     lin, res = selection["linear_part"], selection["residual"]
@@ -132,6 +152,9 @@ def selection_line(selection: dict) -> str:
     r = (f"residual {'kept' if res['kept'] else 'dropped'} (energy score's relative difference "
          f"{res['relative_difference']:+.3f} ± {res['standard_error']:.3f} on the {res['n_val']} {res['judged_on']})"
          if "relative_difference" in res else f"residual: {res['reason']}")
+    fallback = selection.get("modes_fallback")
+    modes = (f"linear_modes {lin['linear_modes']}, its residual dropped: linear_modes 1"
+             if fallback else f"linear_modes {lin['linear_modes']}")
     return (f"selected on the training demos: decoder_basis {lin['decoder_basis']}, latent_linear "
             f"{lin['latent_linear']} (latent_dim {lin['latent_dim']}), basis_cov_reg {lin['basis_cov_reg']:g} "
-            f"({lin['basis_cov_reg_units']}), via_noise {lin['via_noise']:g} ({how}{lin['method']}); {r}")
+            f"({lin['basis_cov_reg_units']}), via_noise {lin['via_noise']:g} ({how}{lin['method']}), {modes}; {r}")

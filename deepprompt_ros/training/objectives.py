@@ -28,6 +28,7 @@ import torch
 from deepprompt_ros.model.aggregation import bayesian_aggregate, gaussian_kl
 from deepprompt_ros.model.checkpoint import Normalization
 from deepprompt_ros.model.network import DeepProMPNet
+from deepprompt_ros.training.basis import ModeOffsets
 from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.tensors import TensorData
 
@@ -157,8 +158,17 @@ def consistent_demos(cfg: TrainConfig, data: TensorData, idx, kinds, w_sub) -> t
     return ok | torch.eye(b, dtype=torch.bool)
 
 
-def loss_fn(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, idx, gen, beta: float):
+def loss_fn(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, idx, gen, beta: float,
+            modes: ModeOffsets | None = None):
     """Negative ELBO per trajectory (mean over the batch) plus the sample-consistency term.
+
+    ``modes``, a linear part taken within K > 1 modes (``linear_modes``): the MLP part s·MLP(z_nl, x)
+    of the decoder holds the offsets between the modes. At the ``z`` the reconstruction decodes it is
+    pulled to the demo's own mode offset and, with the consistency term, at each of its samples to the
+    nearest offset of the modes consistent with the subset (a decoder term, like the precision part);
+    both as ½ Σ (error² / ``modes.var``) over phases and joints, the log-weight that the exact
+    conditioning's via-points there give a z_nl candidate with that error
+    (:mod:`deepprompt_ros.primitive.linear_conditioning`).
 
     Returns
     -------
@@ -182,6 +192,9 @@ def loss_fn(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, idx, gen, bet
     y_hat = net.decode(z, data.x)
     nll = 0.5 * ((y - y_hat) ** 2).sum((1, 2)) / cfg.sigma_y ** 2
     loss = nll + beta * kl
+    if modes is not None:  # the MLP part of y_hat at the demo's mode offset
+        part = y_hat - net.decode_linear(z, data.x.expand(z.shape[0], -1))
+        loss = loss + 0.5 * ((part - modes.offsets[idx]) ** 2 / modes.var).sum((1, 2))
     cons = torch.zeros(())
     if cfg.consistency_weight > 0:
         # Sample consistency (Chamfer distance between sets): the M trajectories decoded from
@@ -197,17 +210,25 @@ def loss_fn(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, idx, gen, bet
         z_s = mu_s.unsqueeze(1) + eps * var_s.sqrt().unsqueeze(1)  # (B, M, k)
         ok = consistent_demos(cfg, data, idx, kinds, w_sub).unsqueeze(1)  # (B_i, 1, B_j)
 
-        def sample_errors(z):  # (B_i, M, B_j): squared distance of every sample to every demo
-            y_s = net.decode(z.reshape(-1, z.shape[-1]), data.x).reshape(z.shape[0], m, *y.shape[1:])
-            return ((y_s.unsqueeze(2) - y.unsqueeze(0).unsqueeze(0)) ** 2).sum((3, 4))
+        def decoded(z):  # (B_i, M, T, d): the samples' trajectories
+            return net.decode(z.reshape(-1, z.shape[-1]), data.x).reshape(z.shape[0], m, *y.shape[1:])
 
-        err = sample_errors(z_s if cfg.consistency_encoder == "all" else z_s.detach())
+        def distances(y_s, to, scale=1.0):  # (B_i, M, B_j): scaled squared distance of every sample to every demo's
+            return ((y_s.unsqueeze(2) - to.unsqueeze(0).unsqueeze(0)) ** 2 / scale).sum((3, 4))
+
+        z_p = z_s if cfg.consistency_encoder == "all" else z_s.detach()
+        y_p = decoded(z_p)
+        err = distances(y_p, y)
         inf = torch.full((), float("inf"))
         precision = torch.where(ok, err, inf).amin(2).mean(1)  # nearest consistent demo per sample
-        cover = (sample_errors(z_s) if cfg.consistency_encoder == "coverage" else err).amin(1)  # nearest sample per demo
+        cover = (distances(decoded(z_s), y) if cfg.consistency_encoder == "coverage" else err).amin(1)  # nearest sample per demo
         okf = ok.squeeze(1).float()
         coverage = (cover * okf).sum(1) / okf.sum(1)
         cons = 0.5 * (precision + coverage) / cfg.sigma_y ** 2
+        if modes is not None:  # each sample's MLP part at the nearest offset of a consistent demo's mode
+            flat = z_p.reshape(-1, z_p.shape[-1])
+            part = y_p - net.decode_linear(flat, data.x.expand(flat.shape[0], -1)).reshape(y_p.shape)
+            cons = cons + 0.5 * torch.where(ok, distances(part, modes.offsets[idx], modes.var), inf).amin(2).mean(1)
         loss = loss + cfg.consistency_weight * cons
     return loss.mean(), nll.mean().item(), kl.mean().item(), cons.mean().item()
 

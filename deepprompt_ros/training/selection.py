@@ -4,7 +4,10 @@
    regularizer and its units) by cross-validation on the demos the network is trained on, scored with
    the via-points conditioned as the server conditions a planner's (at
    :data:`~deepprompt_ros.primitive.latent.PLANNER_VIA_NOISE`, met exactly), then the model's own
-   via-point noise for that structure (:func:`deepprompt_ros.training.basis.cv_basis_hyperparameters`);
+   via-point noise for that structure (:func:`deepprompt_ros.training.basis.cv_basis_hyperparameters`),
+   and the modes of the demos' basis weights in that basis (``linear_modes``,
+   :func:`deepprompt_ros.training.basis.weight_modes`): with K > 1 modes the PPCA is taken within the
+   modes and the MLP residual holds the offsets between them;
 2. :func:`judge_residual` — after training, the MLP residual kept or dropped (``residual_scale`` 0)
    by comparing the model with and without it on the validation demos of the training split (or,
    with ``residual_folds``, on the held-out demos of a cross-validation of the whole training):
@@ -25,12 +28,14 @@ import numpy as np
 from deepprompt_ros.data.demo_dataset import DemoDataset
 from deepprompt_ros.model.checkpoint import Normalization
 from deepprompt_ros.model.network import DeepProMPNet
+from deepprompt_ros.model.phase import phase_basis
 from deepprompt_ros.primitive.deep_promp import DeepProMP
 from deepprompt_ros.primitive.latent import PLANNER_VIA_NOISE
-from deepprompt_ros.training.basis import cv_basis_hyperparameters, fold_assignment
+from deepprompt_ros.training.basis import basis_weights, cv_basis_hyperparameters, fold_assignment, weight_modes
 from deepprompt_ros.training.config import TrainConfig
+from deepprompt_ros.training.tensors import fit_normalization, to_tensors
 
-__all__ = ["select_linear_part", "judge_residual", "energy_score", "keep_residual", "without_residual",
+__all__ = ["select_linear_part", "nonlinear_dims", "judge_residual", "energy_score", "keep_residual", "without_residual",
            "FALLBACK_LINEAR_PART", "RESIDUAL_VIA_POINTS", "RESIDUAL_DRAWS", "RESIDUAL_SAMPLES"]
 
 #: The linear part used when the training split has fewer than 3 demonstrations (nothing to
@@ -47,23 +52,42 @@ _CHOSEN = ("decoder_basis", "latent_linear", "basis_cov_reg", "basis_cov_reg_uni
 
 def select_linear_part(train_ds: DemoDataset, cfg: TrainConfig, n_joints: int) -> tuple[TrainConfig, dict]:
     """The configuration ``cfg`` with the linear part chosen on ``train_ds`` (``cfg.cv_folds``-fold
-    cross-validation, seed ``cfg.seed``; :data:`FALLBACK_LINEAR_PART` below 3 demos), ``latent_dim`` =
-    ``latent_linear`` + ``latent_nonlinear``, the linear part initialized as the PPCA and kept fixed
-    (``basis_init`` pca, ``basis_lr_scale`` 0). Returns (that configuration, the record of the choice:
-    the values, and the cross-validation's result or the reason for the fallback)."""
+    cross-validation, seed ``cfg.seed``; :data:`FALLBACK_LINEAR_PART` below 3 demos), the linear part
+    initialized as the PPCA and kept fixed (``basis_init`` pca, ``basis_lr_scale`` 0), ``linear_modes``
+    K the modes of the training demos' basis weights (normalized units, the chosen basis;
+    :func:`~deepprompt_ros.training.basis.weight_modes`, seed ``cfg.seed``; 1 below 3 demos) and
+    ``latent_dim`` = ``latent_linear`` + :func:`nonlinear_dims`. Returns (that configuration, the record
+    of the choice: the values, the cross-validation's result or the reason for the fallback, and the
+    modes' criterion)."""
     if len(train_ds) >= 3:
         cv = cv_basis_hyperparameters(train_ds, cfg.n_points, basis_width=cfg.basis_width, folds=cfg.cv_folds,
                                       structure_noise=PLANNER_VIA_NOISE, seed=cfg.seed)
         choice = {k: cv[k] for k in _CHOSEN}
+        # the weights the training's PCA initialization will see (training.basis.init_basis_pca)
+        data = to_tensors(train_ds, fit_normalization(train_ds, cfg.n_points), cfg.n_points)
+        phi = phase_basis(data.x.double(), cv["decoder_basis"], cfg.basis_width,
+                          train_ds.phase_type == "rhythmic").numpy()
+        modes = weight_modes(basis_weights(phi, data.y.double().numpy()), cfg.seed)
+        choice["linear_modes"] = modes.n_modes
         record = {"method": f"{cv['folds']}-fold cross-validation on the {cv['n_demos']} training demonstrations",
-                  "cross_validation": cv}
+                  "cross_validation": cv, "modes": modes.record}
     else:
         nb = min(FALLBACK_LINEAR_PART["decoder_basis"], max(2, cfg.n_points // 2))
-        choice = {**FALLBACK_LINEAR_PART, "decoder_basis": nb, "latent_linear": nb * n_joints}
+        choice = {**FALLBACK_LINEAR_PART, "decoder_basis": nb, "latent_linear": nb * n_joints, "linear_modes": 1}
         record = {"method": f"fallback: {len(train_ds)} training demonstrations are too few to cross-validate"}
-    out = dataclasses.replace(cfg, **choice, latent_dim=choice["latent_linear"] + cfg.latent_nonlinear,
-                              basis_init="pca", basis_lr_scale=0.0)
+    out = dataclasses.replace(cfg, **choice, basis_init="pca", basis_lr_scale=0.0,
+                              latent_dim=choice["latent_linear"] + nonlinear_dims(cfg, choice["linear_modes"]))
     return out, {**record, **choice, "latent_dim": out.latent_dim}
+
+
+def nonlinear_dims(cfg: TrainConfig, n_modes: int) -> int:
+    """The dimensions of the latent block z_nl that only the MLP reads: ``cfg.latent_nonlinear`` for
+    demos of one mode; K − 1 for K > 1 modes, where the MLP holds the offsets between the modes (K − 1
+    dimensions place K codes in general position) and the linear part the variation inside them. Fewer
+    dimensions leave fewer directions in which the MLP must be constant on each mode's side, so the
+    draws of z_nl that the conditioning weighs (a Gaussian over all the codes when the via-points cannot
+    tell the modes apart) fall less often between them."""
+    return cfg.latent_nonlinear if n_modes == 1 else n_modes - 1
 
 
 def judge_residual(net: DeepProMPNet, norm: Normalization, joint_names, val_ds: DemoDataset, cfg: TrainConfig,

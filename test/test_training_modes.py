@@ -1,0 +1,136 @@
+"""The modes of the demonstrations in the model selection (``TrainConfig.linear_modes``,
+deepprompt_ros.training.basis.weight_modes): how many are found, the linear part taken within them,
+a trained split model that keeps them, and the fallback to one Gaussian when its residual is dropped."""
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from deepprompt_ros.data.demo_dataset import DemoDataset
+from deepprompt_ros.data.demonstration import Demonstration
+from deepprompt_ros.data.synthetic import bimodal_sine
+from deepprompt_ros.model.checkpoint import load_checkpoint
+from deepprompt_ros.model.phase import phase_basis
+from deepprompt_ros.training.basis import (MODE_DIP, basis_weights, mode_dip, pca_basis, weight_modes)
+from deepprompt_ros.training.config import TrainConfig
+from deepprompt_ros.training.loop import train
+from deepprompt_ros.training.selection import select_linear_part
+from deepprompt_ros.training.tensors import fit_normalization
+
+torch.set_num_threads(1)
+T = 50
+X = np.linspace(0.0, 1.0, T)
+
+
+def curves(n: int, seed: int, amplitude) -> DemoDataset:
+    """3 joints: offset + amplitude · sin πx (per joint) + drift; ``amplitude(rng)`` (3,) per demo."""
+    rng = np.random.default_rng(seed)
+    demos = []
+    for i in range(n):
+        a, o, dr = amplitude(rng), rng.normal(0.0, 0.2, 3), rng.normal(0.0, 0.3, 3)
+        q = o + a * np.sin(np.pi * X)[:, None] * [1.0, 0.5, -0.7] + dr * X[:, None] ** 2
+        demos.append(Demonstration(f"d{i}", X * 2.0, q, ("a", "b", "c")))
+    return DemoDataset(tuple(demos), f"curves(seed={seed})")
+
+
+def weights(ds: DemoDataset, n_b: int = 10) -> np.ndarray:
+    norm = fit_normalization(ds, T)
+    y = (np.stack([d.resampled(T) for d in ds.demos]) - norm.y_mean) / norm.y_std
+    return basis_weights(phase_basis(X, n_b, 1.0, False), y)
+
+
+# ----------------------------------------------------------------------------- how many modes
+def test_mode_dip_is_one_without_a_dip_and_falls_with_the_separation():
+    assert mode_dip(0.0, 0.5, 0.5) == pytest.approx(1.0)
+    assert mode_dip(2.0, 0.5, 0.5) == pytest.approx(1.0, abs=1e-9)  # equal halves: bimodal beyond Δ = 2
+    # the two halves of a uniform spread (means 1/4 and 3/4, std 1/√48 each: Δ = √12) dip to 2φ(√3)/(φ(0) + φ(√12))
+    phi = lambda u: math.exp(-0.5 * u * u)  # noqa: E731
+    assert mode_dip(math.sqrt(12), 0.5, 0.5) == pytest.approx(2 * phi(math.sqrt(3)) / (1 + phi(math.sqrt(12))),
+                                                             rel=1e-3)
+    assert mode_dip(4.9, 0.5, 0.5) == pytest.approx(MODE_DIP, abs=0.01)
+    assert mode_dip(6.0, 0.9, 0.1) < mode_dip(5.0, 0.9, 0.1) < mode_dip(4.0, 0.9, 0.1)
+
+
+@pytest.mark.parametrize("kind", ["gaussian", "uniform", "outliers"])
+def test_one_mode_on_unimodal_demos(kind):
+    if kind == "outliers":  # 2 of 40 demos far out: outlying demos, no mode
+        ds = curves(40, 5, lambda rng: rng.normal(1.0, 0.2, 3))
+        far = [dataclasses.replace(d, q=d.q + 3.0 * np.sin(np.pi * X)[:, None]) for d in ds.demos[:2]]
+        ds = DemoDataset(tuple(far) + ds.demos[2:], "outliers")
+    else:  # amplitudes spread evenly over [0.5, 1.5] (one mode that a single Gaussian fits badly) or Gaussian
+        draw = (lambda rng: rng.normal(1.0, 0.2, 3)) if kind == "gaussian" else (lambda rng: rng.uniform(0.5, 1.5, 3))
+        ds = curves(120, 5, draw)
+    modes = weight_modes(weights(ds), seed=0)
+    assert modes.n_modes == 1 and np.all(modes.labels == 0), modes.record
+    rows = modes.record["mixtures"]
+    assert rows["1"]["admissible"] and set(rows) == {"1", "2", "3", "4"}
+    if kind == "outliers":  # BIC alone prefers a second group: the 2 outlying demos
+        assert rows["2"]["bic"] < rows["1"]["bic"] and min(rows["2"]["sizes"]) == 2 and not rows["2"]["admissible"]
+
+
+def test_two_modes_on_bimodal_demos_and_each_demo_on_its_own():
+    ds = bimodal_sine(40, n_points=T, n_joints=2, seed=1)
+    modes = weight_modes(weights(ds), seed=0)
+    sign = np.array([d.contexts["mode"][0, 0] for d in ds.demos])
+    assert modes.n_modes == 2
+    assert len({(m, s) for m, s in zip(modes.labels, sign)}) == 2  # the labels are the demos' modes
+    rows = modes.record["mixtures"]
+    assert rows["2"]["admissible"] and rows["2"]["dip"] < 1e-6 and rows["2"]["bic"] < rows["1"]["bic"]
+    assert weight_modes(weights(ds), seed=0).labels.tolist() == modes.labels.tolist()  # seeded
+    fixed = weight_modes(weights(ds), seed=0, n_modes=2)
+    assert fixed.labels.tolist() == modes.labels.tolist()
+    assert weight_modes(weights(ds), seed=0, n_modes=1).n_modes == 1
+    with pytest.raises(ValueError, match="n_modes = 0"):
+        weight_modes(weights(ds), n_modes=0)
+
+
+def test_the_pca_within_modes_spans_the_variation_inside_a_mode():
+    ds = bimodal_sine(40, n_points=T, n_joints=2, seed=1)
+    norm = fit_normalization(ds, T)
+    y = (np.stack([d.resampled(T) for d in ds.demos]) - norm.y_mean) / norm.y_std
+    phi = phase_basis(X, 10, 1.0, False)
+    w = basis_weights(phi, y)
+    labels = weight_modes(w, seed=0).labels
+    mean, a, _ = pca_basis(phi, y, 20, 0.0, labels=labels)
+    np.testing.assert_allclose(mean, w.mean(0), atol=1e-12)  # b: the mean of all demos
+    dev = w - np.stack([w[labels == g].mean(0) for g in (0, 1)])[labels]
+    np.testing.assert_allclose(a @ a.T, dev.T @ dev / (len(w) - 2), atol=1e-10)
+    _, a_all, _ = pca_basis(phi, y, 20, 0.0)
+    # the between-mode offset (the sine's ±A) dominates one Gaussian; within the modes only the amplitudes vary
+    assert np.trace(a @ a.T) < 0.05 * np.trace(a_all @ a_all.T)
+
+
+def test_the_selection_records_the_modes_it_chose():
+    out, rec = select_linear_part(bimodal_sine(30, n_points=T, seed=2), TrainConfig(n_points=T, cv_folds=3), 1)
+    assert out.linear_modes == 2 and rec["linear_modes"] == 2 and rec["modes"]["n_modes"] == 2
+    assert "BIC" in rec["modes"]["criterion"] and rec["modes"]["mixtures"]["2"]["admissible"]
+    out, rec = select_linear_part(curves(30, 3, lambda rng: rng.normal(1.0, 0.2, 3)), TrainConfig(n_points=T,
+                                                                                                 cv_folds=3), 3)
+    assert out.linear_modes == 1 and rec["modes"]["n_modes"] == 1
+
+
+# ----------------------------------------------------------------------------- training with the modes
+def test_a_residual_dropped_beside_modes_sends_the_training_back_to_one_gaussian(tmp_path):
+    # one update at a learning rate of 1 leaves the MLP residual garbage: the energy score drops it, and a
+    # linear part taken within the modes must not be served alone
+    ds = bimodal_sine(40, n_points=T, seed=4)
+    cfg = TrainConfig(n_points=T, cv_folds=3, latent_nonlinear=2, hidden=8, steps=1, val_every=1, batch_size=4,
+                      lr=1.0, threads=1, max_via_points=5)
+    info = {}
+    net, norm, _ = train(ds, cfg, out_path=tmp_path / "m.safetensors", info=info, log=lambda s: None)
+    sel = info["selection"]
+    assert sel["linear_part"]["linear_modes"] == 2
+    assert sel["modes_fallback"]["linear_modes"] == 2 and not sel["modes_fallback"]["residual"]["kept"]
+    assert info["train_config"]["linear_modes"] == 1 and not sel["residual"]["kept"]
+    assert net.cfg.residual_scale == 0.0
+    # the linear part served is the PPCA of all training demos
+    train_ds, _ = ds.split(4, seed=0)
+    y = (np.stack([d.resampled(T) for d in train_ds.demos]) - norm.y_mean) / norm.y_std
+    mean, a, _ = pca_basis(phase_basis(X, net.cfg.decoder_basis, 1.0, False), y, net.cfg.latent_linear,
+                           info["train_config"]["basis_cov_reg"])
+    served = net.basis.weight.detach().double().numpy()
+    np.testing.assert_allclose(served @ served.T, a @ a.T, rtol=3e-5, atol=1e-6)  # float32 storage of A
+    np.testing.assert_allclose(net.basis.bias.detach().numpy(), mean, atol=1e-5)
+    assert load_checkpoint(tmp_path / "m.safetensors").metadata["selection"]["modes_fallback"]["linear_modes"] == 2
