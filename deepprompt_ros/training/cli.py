@@ -4,6 +4,8 @@ Usage::
 
     train --data DATASET_DIR --config config/train_gen3_lite_reach.yaml --out models/NAME.safetensors
     python -m deepprompt_ros.training.cli --builtin bimodal_sine --config config/train_bimodal_sine.yaml --out ...
+    torchrun --nproc_per_node 2 -m deepprompt_ros.training.cli --data DATASET_DIR --out ...   # data-parallel
+    train --data DATASET_DIR --out models/NAME.safetensors --resume   # continue from models/NAME.resume.pt
 
 Without a configuration every default applies, ``auto_select`` among them: the decoder's linear part
 and its via-point noise are chosen by cross-validation on the training demonstrations and the MLP
@@ -13,6 +15,11 @@ choices are printed and stored in the checkpoint. The last line printed is a JSO
 ``config/train_*.yaml``. Exit status 2 with a
 message (``error: ...``) naming every refused key or value when the configuration or the data
 are refused.
+
+Launched by ``torchrun`` the same command trains data-parallel
+(:mod:`deepprompt_ros.training.distributed`): process 0 prints, validates and writes the checkpoint.
+Every run writes ``OUT.resume.pt`` beside ``--out`` every ``checkpoint_every`` updates; ``--resume``
+continues an interrupted run from it (:mod:`deepprompt_ros.training.resume`).
 """
 from __future__ import annotations
 
@@ -25,6 +32,7 @@ import sys
 from deepprompt_ros.data.builtin import builtin_dataset
 from deepprompt_ros.data.demo_dataset import load_dataset
 from deepprompt_ros.data.demonstration import DatasetError
+from deepprompt_ros.training import distributed
 from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.loop import train
 
@@ -42,29 +50,51 @@ def main(argv=None) -> int:
     ap.add_argument("--config", help="training YAML (keys of TrainConfig); defaults if omitted")
     ap.add_argument("--out", required=True, help="output checkpoint path (.safetensors)")
     ap.add_argument("--steps", type=int, help="override the number of updates")
+    ap.add_argument("--resume", action="store_true", help="continue from OUT.resume.pt, the resume file an "
+                    "interrupted run with the same --out, configuration and data wrote")
     args = ap.parse_args(argv)
     try:
         cfg = TrainConfig.from_yaml(args.config) if args.config else TrainConfig()
         if args.steps is not None:
             cfg = dataclasses.replace(cfg, steps=args.steps)
+        run = distributed.runtime_from_env(cfg.device)
+        run.check_batch(cfg.batch_size)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    distributed.init(run)
+    try:
+        return _train(args, cfg, run)
+    finally:
+        distributed.shutdown(run)
+
+
+def _train(args, cfg: TrainConfig, run: distributed.Runtime) -> int:
+    say = print if run.is_main else (lambda *a, **k: None)
+    try:
         ds = load_dataset(args.data) if args.data else builtin_dataset(args.builtin, seed=cfg.seed)
     except (ValueError, DatasetError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(f"training on {len(ds)} demonstrations from {ds.source}: joints {list(ds.joint_names)}, "
-          f"phase {ds.phase_type}, contexts {ds.context_dims or 'none'}, images {ds.image_shape or 'none'}")
+    say(f"training on {len(ds)} demonstrations from {ds.source}: joints {list(ds.joint_names)}, "
+        f"phase {ds.phase_type}, contexts {ds.context_dims or 'none'}, images {ds.image_shape or 'none'}")
+    say(f"{run.label()}, {cfg.batch_size // run.world_size} of the batch's {cfg.batch_size} demonstrations per "
+        f"process, {cfg.threads} thread(s) each")
     info = {}
     try:
-        _, _, hist = train(ds, cfg, out_path=args.out, info=info)
-    except (ValueError, DatasetError) as exc:  # data the configuration cannot train on
+        _, _, hist = train(ds, cfg, out_path=args.out, info=info, run=run, resume=args.resume, log=say)
+    except (ValueError, DatasetError) as exc:  # data the configuration cannot train on, a refused resume file
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if not run.is_main:
+        return 0
     best = min(h["val"]["mean"] for h in hist)
     print(f"best validation MSE {best:.3e} rad²; checkpoint written to {pathlib.Path(args.out).resolve()}")
     trained = info["train_config"]
     chosen = {k: trained[k] for k in ("decoder_basis", "latent_linear", "latent_dim", "basis_cov_reg", "linear_modes",
                                       "basis_cov_reg_units", "via_noise", "residual_scale")} if cfg.auto_select else {}
-    print(json.dumps({"out": str(pathlib.Path(args.out).resolve()), "best_val_mse_rad2": best, "selected": chosen}))
+    print(json.dumps({"out": str(pathlib.Path(args.out).resolve()), "best_val_mse_rad2": best, "selected": chosen,
+                      "device": str(run.device), "backend": run.backend, "world_size": run.world_size}))
     return 0
 
 

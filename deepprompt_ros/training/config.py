@@ -14,6 +14,7 @@ from typing import Mapping
 
 from deepprompt_ros.common.params import ConfigError, from_mapping, param, param_from, validate
 from deepprompt_ros.model.network import ModelConfig, decoder_basis_error, latent_linear_errors
+from deepprompt_ros.training.distributed import DEVICES
 
 __all__ = ["TrainConfig", "OBJECTIVES", "CONSISTENCY_ENCODER", "BASIS_INITS", "BASIS_COV_REG_UNITS"]
 
@@ -128,7 +129,14 @@ class TrainConfig:
     val_via_points: int = param(5, "via-points per held-out demonstration in the validation's via-point "
                                    "conditioning", min=0)
     seed: int = param(0, "seed of the validation split, the initialization and every random draw", min=0)
-    threads: int = param(2, "torch CPU threads", min=1)
+    threads: int = param(2, "torch CPU threads (per process)", min=1)
+    device: str = param("auto", "where the training runs: 'auto' (a GPU when CUDA is available, the CPU "
+                                "otherwise), 'cpu' or 'cuda'; under torchrun process LOCAL_RANK takes GPU "
+                                "LOCAL_RANK, and the process group is NCCL on GPUs, gloo on the CPU",
+                        choices=DEVICES)
+    checkpoint_every: int = param(0, "updates between writes of the resume file OUT.resume.pt beside the "
+                                     "checkpoint (train --resume continues from it); 0 = val_every", min=0,
+                                  unit="updates")
 
     def __post_init__(self):
         # the type and range or choices of every field, then the rules a field's range cannot state

@@ -20,7 +20,9 @@ from deepprompt_ros.model.checkpoint import save_checkpoint
 from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
 from deepprompt_ros.training.basis import init_basis_pca
 from deepprompt_ros.training.config import TrainConfig
+from deepprompt_ros.training.distributed import SINGLE, Runtime, wrap
 from deepprompt_ros.training.objectives import loss_fn, validation_mse
+from deepprompt_ros.training.resume import ResumeFile, data_digest, fit_key, resume_path
 from deepprompt_ros.training.selection import judge_residual, nonlinear_dims, select_linear_part
 from deepprompt_ros.training.tensors import fit_normalization, to_tensors
 
@@ -28,7 +30,7 @@ __all__ = ["train"]
 
 
 def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: DemoDataset | None = None,
-          info: dict | None = None):
+          info: dict | None = None, run: Runtime = SINGLE, resume: bool = False):
     """Train on ``ds`` (a validation split is held out unless ``val_ds`` is given).
 
     With ``cfg.auto_select`` the linear part and the modes of the demos are chosen on the training
@@ -42,6 +44,13 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
 
     ``info``, when given, receives the checkpoint's metadata entries ``train_config`` and ``selection``.
 
+    With ``out_path`` the run writes its resume file beside it every ``checkpoint_every`` updates
+    (:mod:`deepprompt_ros.training.resume`); ``resume`` continues from that file. ``run``: this
+    process's place in a data-parallel run (:mod:`deepprompt_ros.training.distributed`; every process
+    calls :func:`train`): the model selection and the residual's judgement are made on process 0 and
+    shared, process 0 alone validates and writes; the others return their last weights and an empty
+    history.
+
     Returns
     -------
     net : DeepProMPNet (best validation weights), norm : Normalization, history : list of dict
@@ -53,44 +62,58 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
         train_ds, val_ds = ds.split(n_val, seed=cfg.seed)
     else:
         train_ds = ds
+    run.check_batch(cfg.batch_size)
+    ckpt = ResumeFile(resume_path(out_path), run, load=resume) if out_path is not None else None
     selection = {}
-    if cfg.auto_select:
-        cfg, selection["linear_part"] = select_linear_part(train_ds, cfg, len(ds.joint_names))
-    net, norm, history, best = _fit(train_ds, val_ds, cfg, log)
+    if cfg.auto_select:  # numpy on process 0, its choice shared: every process trains the same configuration
+        cfg, selection["linear_part"] = run.broadcast(
+            select_linear_part(train_ds, cfg, len(ds.joint_names)) if run.is_main else None)
+    net, norm, history, best = _fit(train_ds, val_ds, cfg, log, run, ckpt, fit_no=0)
     if cfg.auto_select:
         def refit(fold_ds):  # the residual's cross-validation trains exactly as here, the linear part as chosen
             fold_net, fold_norm, _ = train(fold_ds, dataclasses.replace(cfg, auto_select=False), log=lambda s: None)
             return fold_net, fold_norm
 
-        net, selection["residual"] = judge_residual(net, norm, ds.joint_names, val_ds, cfg, train_ds, refit)
+        net, selection["residual"] = _on_main(run, net, lambda: judge_residual(
+            net, norm, ds.joint_names, val_ds, cfg, train_ds, refit))
         if not selection["residual"]["kept"] and cfg.linear_modes > 1:
             log(f"residual dropped beside the linear part of {cfg.linear_modes} modes: training again with one")
             selection["modes_fallback"] = {"linear_modes": cfg.linear_modes, "residual": selection.pop("residual")}
             cfg = dataclasses.replace(cfg, linear_modes=1, latent_dim=cfg.latent_linear + nonlinear_dims(cfg, 1))
-            net, norm, history, best = _fit(train_ds, val_ds, cfg, log)
-            net, selection["residual"] = judge_residual(net, norm, ds.joint_names, val_ds, cfg, train_ds, refit)
+            net, norm, history, best = _fit(train_ds, val_ds, cfg, log, run, ckpt, fit_no=1)
+            net, selection["residual"] = _on_main(run, net, lambda: judge_residual(
+                net, norm, ds.joint_names, val_ds, cfg, train_ds, refit))
         cfg = dataclasses.replace(cfg, residual_scale=net.cfg.residual_scale)
         log(selection_line(selection))
     if info is not None:
         info.update(train_config=dataclasses.asdict(cfg), selection=selection)
-    if out_path is not None:
+    if out_path is not None and run.is_main:
         meta = {
             "train_config": dataclasses.asdict(cfg),
             "selection": selection,
             "provenance": {"dataset": ds.source, "n_train": len(train_ds), "n_val": len(val_ds),
                            "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-                           "deepprompt_ros": __version__, "torch": torch.__version__},
+                           "deepprompt_ros": __version__, "torch": torch.__version__,
+                           "device": str(run.device), "backend": run.backend, "world_size": run.world_size},
             "metrics": {"best_val_mse_rad2": best, "wall_time_s": time.perf_counter() - t0},
         }
         save_checkpoint(out_path, net, norm, ds.joint_names, meta)
     return net, norm, history
 
 
-def _fit(train_ds: DemoDataset, val_ds: DemoDataset, cfg: TrainConfig, log):
+def _on_main(run: Runtime, net, judge):
+    """``judge()`` -> (net, record) on process 0; the record shared, the others keep their ``net``."""
+    kept, record = judge() if run.is_main else (net, None)
+    return kept, run.broadcast(record)
+
+
+def _fit(train_ds: DemoDataset, val_ds: DemoDataset, cfg: TrainConfig, log, run: Runtime = SINGLE,
+         ckpt: ResumeFile | None = None, fit_no: int = 0):
     """The training proper of ``cfg`` (its choices made): initialization (seed ``cfg.seed``; the PCA
     of the linear part within ``cfg.linear_modes`` modes), ``cfg.steps`` updates, the validation every
-    ``cfg.val_every``. Returns (net with the best validation weights, normalization, history, best
-    validation MSE)."""
+    ``cfg.val_every``; with ``ckpt``, continued from its entry ``fit_no`` and recorded in it every
+    ``cfg.checkpoint_every`` updates. Returns (net with the best validation weights, normalization,
+    history, best validation MSE; on processes other than 0 the last weights, an empty history and inf)."""
     torch.manual_seed(cfg.seed)
     norm = fit_normalization(train_ds, cfg.n_points)
     data = to_tensors(train_ds, norm, cfg.n_points)
@@ -117,18 +140,29 @@ def _fit(train_ds: DemoDataset, val_ds: DemoDataset, cfg: TrainConfig, log):
         opt = torch.optim.Adam(groups, lr=cfg.lr)
     else:
         opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
-    gen = torch.Generator().manual_seed(cfg.seed)
-    history, best, best_state = [], math.inf, None
-    t0 = time.perf_counter()
+    gen, draws = run.generators(cfg.seed)  # the batch's demos; the inputs given and z (one generator in one process)
+    history, best, best_state, done = [], math.inf, None, 0
+    key = fit_key(cfg, data_digest(data, val), run.world_size) if ckpt else None
+    entry = ckpt.restore(fit_no, key) if ckpt else None
+    if entry is not None:  # continue after the update the resume file reached
+        net.load_state_dict(entry["net"])
+        opt.load_state_dict(entry["optimizer"])
+        for g, state in zip((gen, draws), entry["generators"][run.rank]):
+            g.set_state(state)
+        done, history, best, best_state = entry["step"], entry["history"], entry["best"], entry["best_state"]
+        log(f"resumed from {ckpt.path} at update {done}")
+    model = wrap(net, loss_fn, run)  # DDP averages the processes' gradients
+    every = cfg.checkpoint_every or cfg.val_every
+    t0 = time.perf_counter() - (entry["elapsed_s"] if entry else 0.0)
     n_train = data.y.shape[0]
-    for step in range(1, cfg.steps + 1):
-        idx = torch.randint(0, n_train, (cfg.batch_size,), generator=gen)
+    for step in range(done + 1, cfg.steps + 1):
+        idx = run.share(torch.randint(0, n_train, (cfg.batch_size,), generator=gen))  # (batch_size / processes,)
         beta = cfg.beta * min(1.0, step / max(1, cfg.kl_anneal_steps))  # KL annealing
-        loss, nll, kl, cons = loss_fn(net, cfg, data, idx, gen, beta, modes)
+        loss, nll, kl, cons = model(cfg, data, idx, draws, beta, modes)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        if step % cfg.val_every == 0 or step == cfg.steps:
+        if run.is_main and (step % cfg.val_every == 0 or step == cfg.steps):
             v = validation_mse(net, cfg, val, norm)
             elapsed = time.perf_counter() - t0
             rec = {"step": step, "loss": loss.item(), "nll": nll, "kl": kl, "consistency": cons, "beta": beta, "val": v,
@@ -139,7 +173,12 @@ def _fit(train_ds: DemoDataset, val_ds: DemoDataset, cfg: TrainConfig, log):
                 best, best_state, mark = v["mean"], {k: t.clone() for k, t in net.state_dict().items()}, " *best"
             log(f"step {step:6d}/{cfg.steps}  loss {loss.item():10.3f}  nll {nll:9.3f}  kl {kl:8.3f}  "
                 f"val_mse {v['mean']:.3e} rad²  {rec['samples_per_s']:.0f} traj/s{mark}")
-    net.load_state_dict(best_state)
+        if ckpt and (step % every == 0 or step == cfg.steps):
+            ckpt.save(fit_no, {"key": key, "step": step, "net": net.state_dict(), "optimizer": opt.state_dict(),
+                               "history": history, "best": best, "best_state": best_state,
+                               "elapsed_s": time.perf_counter() - t0}, [gen, draws])
+    if run.is_main:
+        net.load_state_dict(best_state)
     net.eval()
     return net, norm, history, best
 
