@@ -11,7 +11,8 @@ Without a configuration every default applies, ``auto_select`` among them: the d
 and its via-point noise are chosen by cross-validation on the training demonstrations and the MLP
 residual is kept or dropped on the validation ones (:mod:`deepprompt_ros.training.selection`); the
 choices are printed and stored in the checkpoint. The last line printed is a JSON summary (``out``,
-``best_val_mse_rad2``, ``selected``). The training YAML files of the shipped models are
+``best_val_mse_rad2``, ``selected``, ``samples_per_s`` of the last training, ``device``, ``backend``,
+``world_size``). The training YAML files of the shipped models are
 ``config/train_*.yaml``. Exit status 2 with a
 message (``error: ...``) naming every refused key or value when the configuration or the data
 are refused.
@@ -94,7 +95,7 @@ def _train(args, cfg: TrainConfig, run: distributed.Runtime) -> int:
     chosen = {k: trained[k] for k in ("decoder_basis", "latent_linear", "latent_dim", "basis_cov_reg", "linear_modes",
                                       "basis_cov_reg_units", "via_noise", "residual_scale")} if cfg.auto_select else {}
     print(json.dumps({"out": str(pathlib.Path(args.out).resolve()), "best_val_mse_rad2": best, "selected": chosen,
-                      "device": str(run.device), "backend": run.backend, "world_size": run.world_size}))
+                      "samples_per_s": hist[-1]["samples_per_s"], "device": str(run.device), "backend": run.backend, "world_size": run.world_size}))
     return 0
 
 
