@@ -63,16 +63,22 @@ class Runtime:
         per = idx.shape[0] // self.world_size
         return idx[self.rank * per:(self.rank + 1) * per]
 
+    def place(self, net: DeepProMPNet, *tensors):
+        """``net`` moved to this process's device (in place) and each of ``tensors`` (tensors, or dataclasses
+        / named tuples of tensors, ``None`` passed through) as a copy on it."""
+        net.to(self.device)
+        return tuple(_to(t, self.device) for t in tensors)
+
     def generators(self, seed: int) -> tuple[torch.Generator, torch.Generator]:
         """(batch generator, draw generator). The batch generator draws the total batch's demos and is
         seeded alike on every process; the draw generator draws the inputs given and the latent samples
         of this process's share. In one process they are one generator (seed ``seed``); with several,
         each process's draws come from its own seed derived from (``seed``, rank)."""
-        batch = torch.Generator().manual_seed(seed)
+        batch = torch.Generator(self.device).manual_seed(seed)
         if self.world_size == 1:
             return batch, batch
         own = int(np.random.SeedSequence([seed, self.rank]).generate_state(1, dtype=np.uint64)[0] >> 1)
-        return batch, torch.Generator().manual_seed(own)
+        return batch, torch.Generator(self.device).manual_seed(own)
 
     def label(self) -> str:
         """What the run used, for the log and the checkpoint's provenance."""
@@ -96,6 +102,20 @@ class Runtime:
         out = [None] * self.world_size if self.is_main else None
         dist.gather_object(obj, out, dst=0)
         return out
+
+
+def _to(obj, device: torch.device):
+    if obj is None or isinstance(obj, (int, float, str)):
+        return obj
+    if isinstance(obj, torch.Tensor):
+        return obj.to(device)
+    if isinstance(obj, dict):
+        return {k: _to(v, device) for k, v in obj.items()}
+    if dataclasses.is_dataclass(obj):
+        return dataclasses.replace(obj, **{f.name: _to(getattr(obj, f.name), device) for f in dataclasses.fields(obj)})
+    if isinstance(obj, tuple) and hasattr(obj, "_fields"):  # a NamedTuple
+        return type(obj)(*(_to(v, device) for v in obj))
+    raise TypeError(f"cannot move {type(obj).__name__} to {device}")
 
 
 #: the runtime of a plain (not torchrun) process on the CPU
@@ -156,21 +176,23 @@ class LossModule(torch.nn.Module):
     """The training loss of ``net`` as a module's ``forward``, the call that
     :class:`~torch.nn.parallel.DistributedDataParallel` synchronizes the gradients of (DDP hooks the
     backward of what its ``forward`` computed; the loss calls the network's encoders and decoder
-    rather than one ``forward``)."""
+    rather than one ``forward``). The tensors the loss creates are made on ``device``."""
 
-    def __init__(self, net: DeepProMPNet, loss):
+    def __init__(self, net: DeepProMPNet, loss, device: torch.device):
         super().__init__()
         self.net = net
         self._loss = loss
+        self._device = device
 
     def forward(self, *args):
-        return self._loss(self.net, *args)
+        with self._device:  # the tensors the loss creates, on the network's device
+            return self._loss(self.net, *args)
 
 
 def wrap(net: DeepProMPNet, loss, run: Runtime) -> torch.nn.Module:
     """``loss(net, ...)`` as a module: under DDP when ``run`` is distributed (process 0's weights
     are broadcast to the others here), plain otherwise."""
-    module = LossModule(net, loss)
+    module = LossModule(net, loss, run.device)
     if not run.distributed:
         return module
     ids = [run.device.index] if run.device.type == "cuda" else None

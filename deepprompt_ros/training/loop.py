@@ -140,6 +140,7 @@ def _fit(train_ds: DemoDataset, val_ds: DemoDataset, cfg: TrainConfig, log, run:
         opt = torch.optim.Adam(groups, lr=cfg.lr)
     else:
         opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    data, val, modes = run.place(net, data, val, modes)  # to the run's device (no copy on the CPU)
     gen, draws = run.generators(cfg.seed)  # the batch's demos; the inputs given and z (one generator in one process)
     history, best, best_state, done = [], math.inf, None, 0
     key = fit_key(cfg, data_digest(data, val), run.world_size) if ckpt else None
@@ -163,7 +164,8 @@ def _fit(train_ds: DemoDataset, val_ds: DemoDataset, cfg: TrainConfig, log, run:
         loss.backward()
         opt.step()
         if run.is_main and (step % cfg.val_every == 0 or step == cfg.steps):
-            v = validation_mse(net, cfg, val, norm)
+            with run.device:  # the tensors the validation creates on the run's device
+                v = validation_mse(net, cfg, val, norm)
             elapsed = time.perf_counter() - t0
             rec = {"step": step, "loss": loss.item(), "nll": nll, "kl": kl, "consistency": cons, "beta": beta, "val": v,
                    "samples_per_s": step * cfg.batch_size / elapsed}
@@ -177,6 +179,7 @@ def _fit(train_ds: DemoDataset, val_ds: DemoDataset, cfg: TrainConfig, log, run:
             ckpt.save(fit_no, {"key": key, "step": step, "net": net.state_dict(), "optimizer": opt.state_dict(),
                                "history": history, "best": best, "best_state": best_state,
                                "elapsed_s": time.perf_counter() - t0}, [gen, draws])
+    net.cpu()
     if run.is_main:
         net.load_state_dict(best_state)
     net.eval()

@@ -238,7 +238,7 @@ def validation_weights(cfg: TrainConfig, data: TensorData, kinds) -> dict:
     ``via`` (val_via_points random points per demo), and — when there are contexts or images —
     ``context`` (all of them, no via-point) and ``both``."""
     b, t = data.y.shape[:2]
-    gen = torch.Generator().manual_seed(12345)
+    gen = torch.Generator(data.y.device).manual_seed(12345)
     rank = torch.rand(b, t, generator=gen).argsort(1).argsort(1)
     via = (rank < cfg.val_via_points).float()
     weights = {"via": [], "context": [], "both": []}
