@@ -8,8 +8,11 @@ A run launched by ``torchrun`` has the environment variables ``RANK``, ``WORLD_S
 NCCL on CUDA devices) with the ``env://`` rendezvous those variables describe. Every process draws
 the same total batch of ``batch_size`` demonstrations from one generator seeded alike on every
 process and trains on its share (``batch_size / WORLD_SIZE``, :meth:`Runtime.share`); DDP averages the
-gradients, so an update is that of the whole batch's mean loss. Process 0 (rank 0) validates,
-keeps the best weights and writes the checkpoints; the others stop at the end of the training.
+gradients, so an update is that of the whole batch's mean loss. The inputs each demonstration is
+given and its latent samples come from each process's own generator (:meth:`Runtime.generators`), so
+one process and several reach the same validation error within the run-to-run noise, not the same
+weights. Process 0 (rank 0) validates, keeps the best weights and writes the checkpoints; the others
+stop at the end of the training.
 """
 from __future__ import annotations
 
@@ -23,7 +26,8 @@ import torch.distributed as dist
 
 from deepprompt_ros.model.network import DeepProMPNet
 
-__all__ = ["DEVICES", "Runtime", "SINGLE", "resolve_device", "runtime_from_env", "init", "shutdown", "LossModule"]
+__all__ = ["DEVICES", "Runtime", "SINGLE", "resolve_device", "runtime_from_env", "init", "shutdown", "LossModule",
+           "wrap"]
 
 #: values of ``TrainConfig.device``
 DEVICES = ("auto", "cpu", "cuda")
@@ -150,7 +154,8 @@ def runtime_from_env(device: str, env=None) -> Runtime:
     try:
         rank, world, local = (int(env[k]) for k in _TORCHRUN_ENV)
     except ValueError:
-        raise ValueError(f"RANK, WORLD_SIZE, LOCAL_RANK = {[env[k] for k in _TORCHRUN_ENV]}: expected integers") from None
+        values = [env[k] for k in _TORCHRUN_ENV]
+        raise ValueError(f"RANK, WORLD_SIZE, LOCAL_RANK = {values}: expected integers") from None
     if not 0 <= rank < world:
         raise ValueError(f"RANK = {rank}, WORLD_SIZE = {world}: expected 0 <= RANK < WORLD_SIZE")
     dev = resolve_device(device, local)
