@@ -105,6 +105,16 @@ def test_batch_not_divisible_is_refused(setup):
     assert not (setup / "odd.safetensors").exists()
 
 
+def test_residual_folds_under_several_processes_are_refused(setup):
+    (setup / "folds.yaml").write_text(CONFIG + "residual_folds: 3\n")
+    env = {**_env(), "RANK": "1", "WORLD_SIZE": "2", "LOCAL_RANK": "1", "MASTER_ADDR": "127.0.0.1",
+           "MASTER_PORT": str(free_port())}
+    proc = subprocess.run([sys.executable, *_args(setup, setup / "f.safetensors", "folds.yaml")],
+                          capture_output=True, text=True, timeout=60, env=env)
+    assert proc.returncode == 2, proc.stderr
+    assert "error: residual_folds = 3 with 2 processes" in proc.stderr and "expected residual_folds 0" in proc.stderr
+
+
 def test_partial_torchrun_environment_is_refused(setup):
     env = {**_env(), "RANK": "0"}
     env.pop("WORLD_SIZE", None), env.pop("LOCAL_RANK", None)

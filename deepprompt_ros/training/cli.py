@@ -59,7 +59,7 @@ def main(argv=None) -> int:
         if args.steps is not None:
             cfg = dataclasses.replace(cfg, steps=args.steps)
         run = distributed.runtime_from_env(cfg.device)
-        run.check_batch(cfg.batch_size)
+        run.check(cfg)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

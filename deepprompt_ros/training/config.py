@@ -68,7 +68,8 @@ class TrainConfig:
                              "demonstration)", min=2)
     residual_folds: int = param(0, "with auto_select: 0 = judge the MLP residual on the validation demos; K >= 2 "
                                    "= on the held-out demos of a K-fold cross-validation of the whole training on "
-                                   "the training demos (K more trainings)", min=0)
+                                   "the training demos (K more trainings; in one process: refused under torchrun)",
+                          min=0)
     # -- linear part of a residual decoder
     basis_init: str = param("random", "initial linear part: 'random' (small Gaussian weights) or 'pca' (the PPCA "
                                       "of the training demonstrations)", choices=BASIS_INITS)

@@ -55,12 +55,21 @@ class Runtime:
     def distributed(self) -> bool:
         return self.backend is not None
 
-    def check_batch(self, batch_size: int) -> None:
-        """Refuse a total batch the processes cannot share evenly."""
-        if batch_size % self.world_size:
-            raise ValueError(f"batch_size = {batch_size} is not divisible by the {self.world_size} processes of this "
-                             f"run (WORLD_SIZE): expected a multiple of {self.world_size} (each process trains on "
-                             "batch_size / WORLD_SIZE demonstrations per update)")
+    def check(self, cfg) -> None:
+        """Refuse a training configuration (``TrainConfig``) this run cannot train: a total batch the processes
+        cannot share evenly; with several processes, the residual's cross-validation (``residual_folds``),
+        whose trainings would run on process 0 alone while the others wait on it."""
+        errors = []
+        if cfg.batch_size % self.world_size:
+            errors.append(f"batch_size = {cfg.batch_size} is not divisible by the {self.world_size} processes of this "
+                          f"run (WORLD_SIZE): expected a multiple of {self.world_size} (each process trains on "
+                          "batch_size / WORLD_SIZE demonstrations per update)")
+        if self.world_size > 1 and cfg.auto_select and cfg.residual_folds:
+            errors.append(f"residual_folds = {cfg.residual_folds} with {self.world_size} processes: its "
+                          f"{cfg.residual_folds} trainings of the residual's cross-validation would run on process 0 "
+                          "alone; expected residual_folds 0 under torchrun (or train in one process)")
+        if errors:
+            raise ValueError("; ".join(errors))
 
     def share(self, idx: torch.Tensor) -> torch.Tensor:
         """This process's part of the total batch ``idx`` (B,): (B / world_size,), the whole of it in one process."""

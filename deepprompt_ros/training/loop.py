@@ -62,7 +62,7 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
         train_ds, val_ds = ds.split(n_val, seed=cfg.seed)
     else:
         train_ds = ds
-    run.check_batch(cfg.batch_size)
+    run.check(cfg)
     ckpt = ResumeFile(resume_path(out_path), run, load=resume) if out_path is not None else None
     selection = {}
     if cfg.auto_select:  # numpy on process 0, its choice shared: every process trains the same configuration
