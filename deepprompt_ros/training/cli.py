@@ -10,7 +10,9 @@ and its via-point noise are chosen by cross-validation on the training demonstra
 residual is kept or dropped on the validation ones (:mod:`deepprompt_ros.training.selection`); the
 choices are printed and stored in the checkpoint. The last line printed is a JSON summary (``out``,
 ``best_val_mse_rad2``, ``selected``). The training YAML files of the shipped models are
-``config/train_*.yaml``. Exit status 2 with a
+``config/train_*.yaml``. ``--data`` takes a folder of demonstrations, or a sharded dataset
+(a folder with ``index.json``: :mod:`deepprompt_ros.data.sharded`), which is read lazily and
+trained with bounded memory (:mod:`deepprompt_ros.training.streaming`). Exit status 2 with a
 message (``error: ...``) naming every refused key or value when the configuration or the data
 are refused.
 """
@@ -25,6 +27,7 @@ import sys
 from deepprompt_ros.data.builtin import builtin_dataset
 from deepprompt_ros.data.demo_dataset import load_dataset
 from deepprompt_ros.data.demonstration import DatasetError
+from deepprompt_ros.data.sharded import ShardedDataset, is_sharded
 from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.loop import train
 
@@ -34,7 +37,8 @@ __all__ = ["main"]
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="train", description="Train a DeepProMP on demonstrations.")
     src = ap.add_mutually_exclusive_group(required=True)
-    src.add_argument("--data", help="dataset folder of .npz/.csv demonstrations (see deepprompt_ros.data.demo_dataset)")
+    src.add_argument("--data", help="dataset folder of .npz/.csv demonstrations (see deepprompt_ros.data.demo_dataset), "
+                     "or a sharded dataset (a folder with index.json, deepprompt_ros.data.sharded), read lazily")
     src.add_argument("--builtin", help="built-in generated dataset: bimodal_sine | rhythmic_shake | wam_shake | "
                      "gen3_lite_reach, or a PyBullet task (deepprompt_ros.sim.tasks; full sets take minutes to "
                      "generate): "
@@ -47,7 +51,10 @@ def main(argv=None) -> int:
         cfg = TrainConfig.from_yaml(args.config) if args.config else TrainConfig()
         if args.steps is not None:
             cfg = dataclasses.replace(cfg, steps=args.steps)
-        ds = load_dataset(args.data) if args.data else builtin_dataset(args.builtin, seed=cfg.seed)
+        if args.data:
+            ds = ShardedDataset(args.data) if is_sharded(args.data) else load_dataset(args.data)
+        else:
+            ds = builtin_dataset(args.builtin, seed=cfg.seed)
     except (ValueError, DatasetError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
