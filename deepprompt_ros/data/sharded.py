@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import mmap
 import pathlib
 import shutil
 import sys
@@ -92,6 +93,7 @@ class ShardedDataset:
             raise DatasetError(f"sharded dataset '{self.folder}': {INDEX} cannot be read ({exc!r}); expected the "
                                "index written by deepprompt_ros.data.sharded") from exc
         self._firsts = np.array([int(s["first"]) for s in self.shards], dtype=np.int64)
+        self._layout: dict[tuple[str, str], tuple[int, np.dtype, tuple]] = {}  # (shard, key) -> data offset, dtype, shape
         self._check()
 
     def _check(self):
@@ -116,6 +118,7 @@ class ShardedDataset:
                 shapes["images_rows"] = ((n + 1,), np.int64)
             for key, (shape, dtype) in shapes.items():
                 arr = self._open(name, key)
+                self._layout[(name, key)] = (int(arr.offset), arr.dtype, arr.shape)
                 if arr.shape != shape or arr.dtype != dtype:
                     raise DatasetError(f"{where}: shard '{name}' file {key}.npy has shape {arr.shape} {arr.dtype}; "
                                        f"the index expects {shape} {np.dtype(dtype)}")
@@ -127,9 +130,11 @@ class ShardedDataset:
                                            f"{total}; got {rows[0]} … {rows[-1]}")
                 del arr
             names = self._open(name, "names")
+            self._layout[(name, "names")] = (int(names.offset), names.dtype, names.shape)
             if names.shape != (n,) or names.dtype.kind != "U":
                 raise DatasetError(f"{where}: shard '{name}' file names.npy has shape {names.shape} {names.dtype}; "
                                    f"the index expects ({n},) str")
+            del names
             expected_first += n
         if expected_first != self._n:
             raise DatasetError(f"{where}: the shards hold {expected_first} demonstrations; {INDEX} says {self._n}")
@@ -154,30 +159,58 @@ class ShardedDataset:
             raise IndexError(f"demo {i} out of range: the dataset has {self._n} demonstrations")
         return int(np.searchsorted(self._firsts, i, side="right") - 1)
 
+    def _rows(self, shard: str, key: str, ranges: Sequence[tuple[int, int]]) -> list[np.ndarray]:
+        """Copies of the rows ``a:b`` of each range of the shard's array ``key``, read through a memory
+        map that is closed before returning (its pages do not stay mapped). The array's layout was read
+        from its header when the dataset was opened (``np.load``)."""
+        offset, dtype, shape = self._layout[(shard, key)]
+        path = self.folder / shard / f"{key}.npy"
+        size = offset + int(np.prod(shape)) * dtype.itemsize
+        try:
+            with open(path, "rb") as f:
+                mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+        except (OSError, ValueError) as exc:
+            raise DatasetError(f"sharded dataset '{self.folder}': shard '{shard}' file {key}.npy cannot be read "
+                               f"({exc}); expected the file the dataset was opened with") from exc
+        try:
+            if mm.size() != size:
+                raise DatasetError(f"sharded dataset '{self.folder}': shard '{shard}' file {key}.npy has "
+                                   f"{mm.size()} bytes, {size} when the dataset was opened; expected it unchanged")
+            arr = np.frombuffer(mm, dtype=dtype, count=int(np.prod(shape)), offset=offset).reshape(shape)
+            out = [arr[a:b].copy() for a, b in ranges]
+            del arr
+        finally:
+            mm.close()
+        return out
+
     def read(self, indices: Sequence[int], images: bool = True) -> list[Demonstration]:
-        """The demos ``indices`` (in that order), read from their shards (each opened once per call).
-        ``images`` False: without their images (``images`` None)."""
+        """The demos ``indices`` (in that order), read from their shards (each file of a shard mapped
+        once per call). ``images`` False: without their images (``images`` None)."""
         indices = [int(i) for i in indices]
         by_shard: dict[int, list[int]] = {}
         for i in indices:
             by_shard.setdefault(self.shard_of(i), []).append(i)
         out = {}
         for k, members in by_shard.items():
-            s = self.shards[k]
-            name, first = s["dir"], int(s["first"])
-            t, q, t_rows, names = (self._open(name, key) for key in ("t", "q", "t_rows", "names"))
-            ctx = {c: (self._open(name, f"ctx_{c}"), self._open(name, f"ctx_{c}_rows")) for c in self.context_dims}
-            im = (self._open(name, "images"), self._open(name, "images_rows")) \
-                if images and self.image_shape is not None else None
-            for i in members:
-                j = i - first
-                a, b = int(t_rows[j]), int(t_rows[j + 1])
-                contexts = {c: np.array(arr[int(rows[j]):int(rows[j + 1])]) for c, (arr, rows) in ctx.items()}
-                imgs = None if im is None else np.array(im[0][int(im[1][j]):int(im[1][j + 1])])
+            name, first = self.shards[k]["dir"], int(self.shards[k]["first"])
+            local = [i - first for i in members]
+
+            def ranges(key: str) -> list[tuple[int, int]]:  # each member's rows of the arrays ``key`` indexes
+                return [(int(r[0]), int(r[1])) for r in self._rows(name, f"{key}_rows", [(j, j + 2) for j in local])]
+
+            def ragged(key: str) -> list[np.ndarray]:
+                return self._rows(name, key, ranges(key))
+
+            t_rows = ranges("t")
+            t, q = self._rows(name, "t", t_rows), self._rows(name, "q", t_rows)
+            names = self._rows(name, "names", [(j, j + 1) for j in local])
+            ctx = {c: ragged(f"ctx_{c}") for c in self.context_dims}
+            ims = ragged("images") if images and self.image_shape is not None else None
+            for m, i in enumerate(members):
                 out[i] = validate_demo(Demonstration(
-                    name=str(names[j]), t=np.array(t[a:b]), q=np.array(q[a:b]), joint_names=self.joint_names,
-                    contexts=contexts, images=imgs, phase_type=self.phase_type))
-            del t, q, t_rows, names, ctx, im  # closes the memory maps
+                    name=str(names[m][0]), t=t[m], q=q[m], joint_names=self.joint_names,
+                    contexts={c: v[m] for c, v in ctx.items()}, images=None if ims is None else ims[m],
+                    phase_type=self.phase_type))
         return [out[i] for i in indices]
 
     def iter_shards(self, indices: Iterable[int] | None = None, images: bool = False) -> Iterator[tuple[int, Demonstration]]:

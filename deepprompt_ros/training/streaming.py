@@ -47,7 +47,7 @@ __all__ = ["train_sharded", "streaming_normalization", "ShardBatches", "chunked_
            "VAL_CHUNK"]
 
 #: Held-out demos encoded at once by the validation.
-VAL_CHUNK = 64
+VAL_CHUNK = 32
 
 
 def bounded_subset(ids: np.ndarray, cap: int, seed: int) -> np.ndarray:
