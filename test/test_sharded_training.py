@@ -9,11 +9,14 @@ import pytest
 
 from deepprompt_ros.data.demo_dataset import DemoDataset
 from deepprompt_ros.data.sharded import write_shards
-from deepprompt_ros.data.synthetic import iter_image_reach
+from deepprompt_ros.data.synthetic import bimodal_sine, iter_image_reach
 from deepprompt_ros.model.checkpoint import load_checkpoint
 from deepprompt_ros.training.cli import main as train_main
 from deepprompt_ros.training.config import TrainConfig
-from deepprompt_ros.training.loop import train
+from deepprompt_ros.training.basis import init_basis_pca
+from deepprompt_ros.training.loop import new_network, train
+from deepprompt_ros.training.streaming import bounded_subset, mode_labels
+from deepprompt_ros.training.tensors import fit_normalization, to_tensors
 
 QUIET = dict(log=lambda s: None)
 #: a fixed linear part (PCA-initialized) and a small network: a few updates of every loss term
@@ -87,3 +90,37 @@ def test_train_command_on_shards_writes_a_model_that_loads(data, tmp_path):
     # the file holds the model the same configuration trains in this process
     same = train(shards, TrainConfig.from_yaml(cfg), **QUIET)[0]
     assert max_weight_difference(ckpt.build(), same) == 0.0
+
+
+#: the bimodal sines with the linear part taken within their two modes (the MLP holds the offsets)
+MODES_CFG = dataclasses.replace(CFG, decoder_basis=10, latent_linear=4, latent_dim=5, linear_modes=2, n_val=10,
+                                steps=30, val_every=30)
+
+
+@pytest.fixture(scope="module")
+def sines(tmp_path_factory):
+    mem = bimodal_sine(70, n_points=40, seed=2)
+    return mem, write_shards(mem.demos, tmp_path_factory.mktemp("sines") / "s", shard_size=16)
+
+
+def test_training_within_modes_equals_memory_and_labels_every_demo_beyond_the_subset(sines):
+    mem, shards = sines
+    net_m, _, hist_m = train(mem, MODES_CFG, **QUIET)
+    net_s, _, hist_s = train(shards, MODES_CFG, **QUIET)
+    assert max_weight_difference(net_m, net_s) <= 1e-6
+    assert hist_s[-1]["val"]["mean"] == pytest.approx(hist_m[-1]["val"]["mean"], rel=1e-6)
+    # the modes found on 20 of the 60 training demos; the other 40 classified: every one as its sine's sign
+    train_ids = np.sort(np.random.default_rng(0).permutation(70)[10:])
+    select_ids = bounded_subset(train_ids, 20, 0)
+    sub = DemoDataset(tuple(mem.demos[i] for i in select_ids))
+    norm = fit_normalization(DemoDataset(tuple(mem.demos[i] for i in train_ids)), 40)
+    data = to_tensors(sub, norm, 40)
+    net = new_network(mem, MODES_CFG)
+    init = init_basis_pca(net, data, n_modes=2)
+    labels = mode_labels(shards, train_ids, select_ids, init.modes.labels, net, data, norm, 40)
+    sign = np.array([mem.demos[i].contexts["mode"][0, 0] > 0 for i in train_ids])
+    assert len(set(zip(labels.tolist(), sign.tolist()))) == 2  # one label per sign, all 60 demos
+    bounded = dataclasses.replace(MODES_CFG, select_max_demos=20)
+    net_b, _, hist_b = train(shards, bounded, **QUIET)
+    # trained on the labels of all 60 demos: validation MSE 0.30 against 0.44 with the modes of all 60 measured
+    assert hist_b[-1]["val"]["mean"] == pytest.approx(hist_s[-1]["val"]["mean"], rel=0.5)
