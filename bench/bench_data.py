@@ -46,14 +46,15 @@ def train_child(folder: str, steps: int, in_memory: bool) -> int:
     from deepprompt_ros.data.sharded import ShardedDataset
     from deepprompt_ros.training.config import TrainConfig
     from deepprompt_ros.training.loop import train
+    from deepprompt_ros.training.streaming import train_sharded
 
     cfg = TrainConfig.from_dict({**TRAIN, "steps": steps, "val_every": steps})
-    ds = ShardedDataset(folder)
+    ds, trainer = ShardedDataset(folder), train_sharded
     if in_memory:
-        ds = DemoDataset(tuple(ds.read(range(len(ds)))), folder)
+        ds, trainer = DemoDataset(tuple(ds.read(range(len(ds)))), folder), train
         cfg = dataclasses.replace(cfg, data_workers=0)
     t0 = time.perf_counter()
-    _, _, hist = train(ds, cfg, log=lambda s: None)
+    _, _, hist = trainer(ds, cfg, log=lambda s: None)
     print(json.dumps({"samples_per_s": hist[-1]["samples_per_s"], "wall_s": time.perf_counter() - t0}))
     return 0
 

@@ -30,6 +30,7 @@ from deepprompt_ros.data.demonstration import DatasetError
 from deepprompt_ros.data.sharded import ShardedDataset, is_sharded
 from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.loop import train
+from deepprompt_ros.training.streaming import train_sharded
 
 __all__ = ["main"]
 
@@ -62,7 +63,8 @@ def main(argv=None) -> int:
           f"phase {ds.phase_type}, contexts {ds.context_dims or 'none'}, images {ds.image_shape or 'none'}")
     info = {}
     try:
-        _, _, hist = train(ds, cfg, out_path=args.out, info=info)
+        trainer = train_sharded if isinstance(ds, ShardedDataset) else train
+        _, _, hist = trainer(ds, cfg, out_path=args.out, info=info)
     except (ValueError, DatasetError) as exc:  # data the configuration cannot train on
         print(f"error: {exc}", file=sys.stderr)
         return 2

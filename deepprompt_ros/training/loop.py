@@ -27,12 +27,10 @@ from deepprompt_ros.training.tensors import fit_normalization, to_tensors
 __all__ = ["train", "new_network", "new_optimizer"]
 
 
-def train(ds, cfg: TrainConfig, out_path=None, log=print, val_ds: DemoDataset | None = None,
+def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: DemoDataset | None = None,
           info: dict | None = None):
-    """Train on ``ds`` (a validation split is held out unless ``val_ds`` is given): a
-    :class:`~deepprompt_ros.data.demo_dataset.DemoDataset` in memory, or a
-    :class:`~deepprompt_ros.data.sharded.ShardedDataset` on disk, trained with bounded memory by
-    :func:`deepprompt_ros.training.streaming.train_sharded`.
+    """Train on ``ds`` (a validation split is held out unless ``val_ds`` is given). A sharded dataset
+    on disk trains with bounded memory by :func:`deepprompt_ros.training.streaming.train_sharded`.
 
     With ``cfg.auto_select`` the linear part and the modes of the demos are chosen on the training
     split before training (:func:`~deepprompt_ros.training.selection.select_linear_part`) and the MLP
@@ -49,10 +47,6 @@ def train(ds, cfg: TrainConfig, out_path=None, log=print, val_ds: DemoDataset | 
     -------
     net : DeepProMPNet (best validation weights), norm : Normalization, history : list of dict
     """
-    if not isinstance(ds, DemoDataset):  # a sharded dataset on disk: read lazily, batches from worker processes
-        from deepprompt_ros.training.streaming import train_sharded
-
-        return train_sharded(ds, cfg, out_path=out_path, log=log, info=info)
     torch.set_num_threads(cfg.threads)
     t0 = time.perf_counter()
     if val_ds is None:

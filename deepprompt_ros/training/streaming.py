@@ -1,6 +1,6 @@
 """Training on a sharded dataset on disk (:class:`~deepprompt_ros.data.sharded.ShardedDataset`) with
-bounded memory: the steps of :func:`deepprompt_ros.training.loop.train` with the demonstrations read
-when they are needed.
+bounded memory (:func:`train_sharded`, which ``train --data`` runs on a folder with ``index.json``): the
+steps of :func:`deepprompt_ros.training.loop.train` with the demonstrations read when they are needed.
 
 - the normalization in one streaming pass over the training demos (:func:`streaming_normalization`:
   per-joint and per-context mean and variance merged demo by demo, Chan, Golub & LeVeque, "Algorithms
@@ -40,7 +40,7 @@ from deepprompt_ros.model.checkpoint import Normalization, save_checkpoint
 from deepprompt_ros.model.network import DeepProMPNet
 from deepprompt_ros.training.basis import ModeOffsets, basis_weights, init_basis_pca
 from deepprompt_ros.training.config import TrainConfig
-from deepprompt_ros.training.loop import new_network, new_optimizer, selection_line
+from deepprompt_ros.training.loop import new_network, new_optimizer, selection_line, train
 from deepprompt_ros.training.objectives import encode_all, loss_fn
 from deepprompt_ros.training.selection import judge_residual, nonlinear_dims, select_linear_part
 from deepprompt_ros.training.tensors import TensorData, to_tensors
@@ -221,8 +221,6 @@ def train_sharded(ds: ShardedDataset, cfg: TrainConfig, out_path=None, log=print
         cfg, selection["linear_part"] = select_linear_part(select_ds(), cfg, len(ds.joint_names))
     net, norm, history, best = _fit(ds, train_ids, val_ids, select_ids, cfg, log)
     if cfg.auto_select:
-        from deepprompt_ros.training.loop import train
-
         def refit(fold_ds):  # the residual's cross-validation, in memory on folds of the selection's demos
             fold_net, fold_norm, _ = train(fold_ds, dataclasses.replace(cfg, auto_select=False), log=lambda s: None)
             return fold_net, fold_norm
