@@ -14,7 +14,8 @@ from deepprompt_ros.data.demonstration import DatasetError, demo_from_arrays
 from deepprompt_ros.data.sharded import INDEX, ShardedDataset, convert_folder, is_sharded, main as shard_main, \
     write_shards
 from deepprompt_ros.training.cli import main as train_main
-from deepprompt_ros.training.streaming import streaming_normalization
+from deepprompt_ros.training.config import TrainConfig
+from deepprompt_ros.training.streaming import streaming_normalization, train_sharded
 from deepprompt_ros.training.tensors import fit_normalization
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -140,3 +141,16 @@ def test_train_command_exits_2_on_a_damaged_shard(tmp_path):
                          cwd=ROOT)
     assert out.returncode == 2, out.stderr
     assert "has no file q.npy; expected every file the index lists" in out.stderr
+
+
+def test_a_shard_damaged_during_training_stops_it_with_the_workers_message(tmp_path):
+    folder = tmp_path / "shards"
+    ds = write_shards(ragged_demos(12), folder, shard_size=4)  # opened: the files' sizes are known
+    images = folder / "shard_00002" / "images.npy"
+    images.write_bytes(images.read_bytes()[:-100])
+    cfg = TrainConfig(steps=20, threads=1, batch_size=4, n_points=20, auto_select=False, data_workers=2, n_val=2,
+                      hidden=16, latent_dim=4)
+    with pytest.raises(DatasetError) as err:
+        train_sharded(ds, cfg, log=lambda s: None)
+    assert str(err.value).startswith(f"sharded dataset '{folder}': shard 'shard_00002' file images.npy has ")
+    assert str(err.value).endswith("when the dataset was opened; expected it unchanged")

@@ -289,7 +289,10 @@ def _fit(ds: ShardedDataset, train_ids: np.ndarray, val_ids: np.ndarray, select_
         if loader is None:  # drawn as loop._fit draws them
             idx, data = batches[torch.randint(0, n_train, (cfg.batch_size,), generator=gen)]
         else:
-            idx, data = next(loader)
+            try:
+                idx, data = next(loader)
+            except DatasetError as exc:  # re-raised from a worker with its traceback: the message is at its end
+                raise DatasetError(str(exc).rstrip().rpartition("DatasetError: ")[2]) from None
         beta = cfg.beta * min(1.0, step / max(1, cfg.kl_anneal_steps))  # KL annealing
         batch_modes = None if modes is None else ModeOffsets(modes[0][modes[1][idx].long()], modes[2])
         loss, nll, kl, cons = loss_fn(net, cfg, data, local, gen, beta, batch_modes)
