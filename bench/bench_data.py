@@ -61,7 +61,8 @@ def train_child(folder: str, steps: int, in_memory: bool) -> int:
 
 def run_training(folder: pathlib.Path, steps: int, in_memory: bool = False) -> dict:
     """Train in a child process; its result and peak RSS (MB) over it and its worker processes."""
-    cmd = [sys.executable, __file__, "--train", str(folder), "--steps", str(steps)] + (["--in-memory"] if in_memory else [])
+    cmd = [sys.executable, __file__, "--train", str(folder), "--steps", str(steps)]
+    cmd += ["--in-memory"] if in_memory else []
     env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
     with tempfile.TemporaryFile("w+") as out:
         proc = subprocess.Popen(cmd, stdout=out, env=env)

@@ -89,6 +89,8 @@ def test_converter_refuses_mixed_joint_names_and_leaves_no_dataset(tmp_path, cap
     assert not (tmp_path / "shards").exists()
     with pytest.raises(DatasetError, match="not empty"):
         write_shards(demos[:2], tmp_path / "folder")
+    with pytest.raises(DatasetError, match="'.*nowhere' does not exist; expected a folder of .npz/.csv"):
+        convert_folder(tmp_path / "nowhere", tmp_path / "out")
 
 
 def damage(folder: pathlib.Path, how: str):

@@ -93,7 +93,8 @@ class ShardedDataset:
             raise DatasetError(f"sharded dataset '{self.folder}': {INDEX} cannot be read ({exc!r}); expected the "
                                "index written by deepprompt_ros.data.sharded") from exc
         self._firsts = np.array([int(s["first"]) for s in self.shards], dtype=np.int64)
-        self._layout: dict[tuple[str, str], tuple[int, np.dtype, tuple]] = {}  # (shard, key) -> data offset, dtype, shape
+        # (shard, key) -> the array's data offset in its file, dtype, shape
+        self._layout: dict[tuple[str, str], tuple[int, np.dtype, tuple]] = {}
         self._check()
 
     def _check(self):
@@ -213,7 +214,8 @@ class ShardedDataset:
                     phase_type=self.phase_type))
         return [out[i] for i in indices]
 
-    def iter_shards(self, indices: Iterable[int] | None = None, images: bool = False) -> Iterator[tuple[int, Demonstration]]:
+    def iter_shards(self, indices: Iterable[int] | None = None,
+                    images: bool = False) -> Iterator[tuple[int, Demonstration]]:
         """(index, demo) for ``indices`` (all when None) in index order, one shard in memory at a time."""
         wanted = np.arange(self._n) if indices is None else np.unique(np.asarray(list(indices), dtype=np.int64))
         shard = np.searchsorted(self._firsts, wanted, side="right") - 1
@@ -246,10 +248,9 @@ class _ShardWriter:
         elif demo.phase_type != f.phase_type:
             raise DatasetError(f"demonstration '{demo.name}': phase_type '{demo.phase_type}' but the dataset is "
                                f"'{f.phase_type}' (from '{f.name}')")
-        elif {k: v.shape[1] for k, v in demo.contexts.items()} != {k: v.shape[1] for k, v in f.contexts.items()}:
-            raise DatasetError(f"demonstration '{demo.name}': contexts "
-                               f"{ {k: v.shape[1] for k, v in sorted(demo.contexts.items())} } differ from the "
-                               f"dataset's { {k: v.shape[1] for k, v in sorted(f.contexts.items())} } (name: dimension)")
+        elif _dims(demo) != _dims(f):
+            raise DatasetError(f"demonstration '{demo.name}': contexts {_dims(demo)} differ from the dataset's "
+                               f"{_dims(f)} (name: dimension, from '{f.name}')")
         elif (demo.images is None) != (f.images is None) or (
                 demo.images is not None and demo.images.shape[1:] != f.images.shape[1:]):
             raise DatasetError(f"demonstration '{demo.name}': images "
@@ -303,6 +304,10 @@ class _ShardWriter:
         tmp.write_text(json.dumps(index, indent=1))
         tmp.replace(self.folder / INDEX)  # the index last: a folder without it is no dataset
         return index
+
+
+def _dims(demo: Demonstration) -> dict[str, int]:
+    return {k: int(v.shape[1]) for k, v in sorted(demo.contexts.items())}
 
 
 def write_shards(demos: Iterable[Demonstration], folder: str | pathlib.Path,

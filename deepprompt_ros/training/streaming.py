@@ -172,7 +172,8 @@ def chunked_validation_mse(net: DeepProMPNet, cfg: TrainConfig, batches: ShardBa
         for kind, sl in kinds:
             width = sl.stop - sl.start
             if kind == "via":
-                weights["via"].append(via), weights["both"].append(via), weights["context"].append(torch.zeros(b, width))
+                weights["via"].append(via), weights["both"].append(via)
+                weights["context"].append(torch.zeros(b, width))
             else:
                 mask = data.image_mask.amax(1, keepdim=True) if kind == "image" else data.ctx_mask[kind]
                 weights["via"].append(torch.zeros(b, width)), weights["context"].append(mask)
