@@ -72,7 +72,8 @@ def test_auto_select_and_validation_read_bounded_subsets(data, tmp_path):
     assert bounded == {"train_demos": 34, "held_out_demos": 6, "select_demos": 20, "val_demos": 4, "seed": 0,
                        "select_max_demos": 20, "val_max_demos": 4}
     assert info["selection"]["linear_part"]["cross_validation"]["n_demos"] == 20
-    assert info["selection"]["residual"].get("n_val", 4) == 4
+    assert info["selection"]["linear_part"]["method"] == "5-fold cross-validation on the 20 training demonstrations"
+    assert info["selection"]["residual"]["n_val"] == 4 and info["selection"]["residual"]["judged_on"] == "validation demos"
 
 
 def test_train_command_on_shards_writes_a_model_that_loads(data, tmp_path):

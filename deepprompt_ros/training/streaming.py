@@ -46,8 +46,7 @@ from deepprompt_ros.training.selection import judge_residual, nonlinear_dims, se
 from deepprompt_ros.training.tensors import TensorData, to_tensors
 
 __all__ = ["train_sharded", "streaming_normalization", "ShardBatches", "chunked_validation_mse", "bounded_subset",
-           "mode_labels",
-           "VAL_CHUNK"]
+           "mode_labels", "VAL_CHUNK"]
 
 #: Held-out demos encoded at once by the validation.
 VAL_CHUNK = 32
