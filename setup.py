@@ -36,6 +36,7 @@ setup(
             "sim_bridge = deepprompt_ros.ros.sim_bridge:main",
             "demo_recorder = deepprompt_ros.ros.demo_recorder:main",
             "train = deepprompt_ros.training.cli:main",
+            "shard_dataset = deepprompt_ros.data.sharded:main",
         ],
     },
 )

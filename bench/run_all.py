@@ -7,7 +7,8 @@ import subprocess
 import sys
 
 HERE = pathlib.Path(__file__).resolve().parent
-SCRIPTS = ["bench_core.py", "bench_method.py", "bench_train.py", "bench_ros.py", "bench_dual.py", "bench_fuzz.py"]
+SCRIPTS = ["bench_core.py", "bench_method.py", "bench_train.py", "bench_ros.py", "bench_dual.py", "bench_fuzz.py",
+           "bench_data.py"]
 
 
 def main() -> int:

@@ -47,6 +47,7 @@ _EXPORTS = {
     "demo_from_arrays": "data.demonstration", "DemoDataset": "data.demo_dataset",
     "load_dataset": "data.demo_dataset", "load_demo": "data.io", "save_demo": "data.io", "load_csv": "data.io",
     "bimodal_sine": "data.synthetic", "builtin_dataset": "data.builtin",
+    "ShardedDataset": "data.sharded", "write_shards": "data.sharded", "convert_folder": "data.sharded",
     # baseline
     "ProMP": "baselines.promp",
     # robots, simulation and streaming

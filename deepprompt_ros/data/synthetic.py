@@ -2,14 +2,14 @@
 (Fig. "DeepProMPs used in different situations") and one-cycle shaking for rhythmic primitives."""
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 
 from deepprompt_ros.data.demo_dataset import DemoDataset
 from deepprompt_ros.data.demonstration import Demonstration
 
-__all__ = ["bimodal_sine", "rhythmic_shake"]
+__all__ = ["bimodal_sine", "rhythmic_shake", "iter_image_reach"]
 
 
 def bimodal_sine(n_demos: int = 200, n_points: int = 100, n_joints: int = 1, seed: int = 0,
@@ -61,3 +61,35 @@ def rhythmic_shake(n_demos: int = 30, n_points: int = 100, n_joints: int = 7, se
         demos.append(Demonstration(name=f"shake_{i:04d}", t=x * period, q=q, joint_names=names,
                                    phase_type="rhythmic"))
     return DemoDataset(tuple(demos), source=f"rhythmic_shake(seed={seed})")
+
+
+def iter_image_reach(n_demos: int, seed: int = 0, n_joints: int = 7, n_points: int = 100, n_images: int = 5,
+                     image_size: int = 64, duration: float = 3.0) -> Iterator[Demonstration]:
+    """``n_demos`` reaching demonstrations with a 3-D context ``target`` and ``n_images`` camera
+    images each, generated one at a time (demo i from the generator seeded ``[seed, i]``, so the
+    family needs no memory beyond one demo and any demo can be made on its own).
+
+    The target is uniform in [0.3, 0.6] x [-0.3, 0.3] x [0, 0.3] m; each joint moves from its start
+    (spread over ±0.5 rad) by minimum jerk to a goal linear in the target (a fixed random map) plus
+    a per-demo bend (≤ 0.1 rad at mid-phase). Each image (``image_size`` square, uint8) is grey noise
+    with a red square where the target projects from above, shifted by up to 2 pixels per image.
+    """
+    names = tuple(f"joint_{j + 1}" for j in range(n_joints))
+    gain = np.random.default_rng([seed, 2**31]).normal(0.0, 1.5, size=(n_joints, 3))
+    start = np.linspace(-0.5, 0.5, n_joints)
+    x = np.linspace(0.0, 1.0, n_points)
+    s = 10 * x ** 3 - 15 * x ** 4 + 6 * x ** 5  # minimum-jerk profile
+    side = max(2, image_size // 8)
+    for i in range(n_demos):
+        rng = np.random.default_rng([seed, i])
+        target = rng.uniform([0.3, -0.3, 0.0], [0.6, 0.3, 0.3])
+        goal = start + gain @ (target - [0.45, 0.0, 0.15])
+        bend = rng.uniform(-0.1, 0.1, n_joints)
+        q = start + np.outer(s, goal - start) + np.outer(np.sin(np.pi * x), bend)
+        images = rng.integers(90, 120, size=(n_images, image_size, image_size, 3), dtype=np.uint8)
+        u = int((target[0] - 0.3) / 0.3 * (image_size - side - 4)) + 2
+        v = int((target[1] + 0.3) / 0.6 * (image_size - side - 4)) + 2
+        for k, (du, dv) in enumerate(rng.integers(-2, 3, size=(n_images, 2))):
+            images[k, u + du: u + du + side, v + dv: v + dv + side] = (200, 30, 30)
+        yield Demonstration(name=f"reach_{i:05d}", t=x * duration, q=q, joint_names=names,
+                            contexts={"target": target[None, :]}, images=images)

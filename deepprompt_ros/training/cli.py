@@ -13,7 +13,10 @@ residual is kept or dropped on the validation ones (:mod:`deepprompt_ros.trainin
 choices are printed and stored in the checkpoint. The last line printed is a JSON summary (``out``,
 ``best_val_mse_rad2``, ``selected``, ``samples_per_s`` of the last training, ``device``, ``backend``,
 ``world_size``). The training YAML files of the shipped models are
-``config/train_*.yaml``. Exit status 2 with a
+``config/train_*.yaml``. ``--data`` takes a folder of demonstrations, or a sharded dataset
+(a folder with ``index.json``: :mod:`deepprompt_ros.data.sharded`), which is read lazily and
+trained with bounded memory (:mod:`deepprompt_ros.training.streaming`; in one process on the CPU,
+without ``--resume``). Exit status 2 with a
 message (``error: ...``) naming every refused key or value when the configuration or the data
 are refused.
 
@@ -26,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import pathlib
 import sys
@@ -33,9 +37,11 @@ import sys
 from deepprompt_ros.data.builtin import builtin_dataset
 from deepprompt_ros.data.demo_dataset import load_dataset
 from deepprompt_ros.data.demonstration import DatasetError
+from deepprompt_ros.data.sharded import ShardedDataset, is_sharded
 from deepprompt_ros.training import distributed
 from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.loop import train
+from deepprompt_ros.training.streaming import train_sharded
 
 __all__ = ["main"]
 
@@ -43,7 +49,8 @@ __all__ = ["main"]
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="train", description="Train a DeepProMP on demonstrations.")
     src = ap.add_mutually_exclusive_group(required=True)
-    src.add_argument("--data", help="dataset folder of .npz/.csv demonstrations (see deepprompt_ros.data.demo_dataset)")
+    src.add_argument("--data", help="dataset folder of .npz/.csv demonstrations (see deepprompt_ros.data.demo_dataset), "
+                     "or a sharded dataset (a folder with index.json, deepprompt_ros.data.sharded), read lazily")
     src.add_argument("--builtin", help="built-in generated dataset: bimodal_sine | rhythmic_shake | wam_shake | "
                      "gen3_lite_reach, or a PyBullet task (deepprompt_ros.sim.tasks; full sets take minutes to "
                      "generate): "
@@ -73,7 +80,16 @@ def main(argv=None) -> int:
 def _train(args, cfg: TrainConfig, run: distributed.Runtime) -> int:
     say = print if run.is_main else (lambda *a, **k: None)
     try:
-        ds = load_dataset(args.data) if args.data else builtin_dataset(args.builtin, seed=cfg.seed)
+        if args.data:
+            ds = ShardedDataset(args.data) if is_sharded(args.data) else load_dataset(args.data)
+        else:
+            ds = builtin_dataset(args.builtin, seed=cfg.seed)
+        sharded = isinstance(ds, ShardedDataset)
+        if sharded and (run.world_size > 1 or args.resume or run.device.type != "cpu"):
+            raise ValueError(f"the sharded dataset '{args.data}' trains in one process on the CPU and without "
+                             f"--resume (this run: {run.world_size} process(es) on {run.device}"
+                             f"{', --resume' if args.resume else ''}): expected one process, device cpu and no "
+                             "--resume, or a folder of demonstrations")
     except (ValueError, DatasetError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -83,7 +99,8 @@ def _train(args, cfg: TrainConfig, run: distributed.Runtime) -> int:
         f"process, {cfg.threads} thread(s) each")
     info = {}
     try:
-        _, _, hist = train(ds, cfg, out_path=args.out, info=info, run=run, resume=args.resume, log=say)
+        trainer = train_sharded if sharded else functools.partial(train, run=run, resume=args.resume)
+        _, _, hist = trainer(ds, cfg, out_path=args.out, info=info, log=say)
     except (ValueError, DatasetError) as exc:  # data the configuration cannot train on, a refused resume file
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -138,6 +138,16 @@ class TrainConfig:
     checkpoint_every: int = param(0, "updates between writes of the resume file OUT.resume.pt beside the "
                                      "checkpoint (train --resume continues from it); 0 = val_every", min=0,
                                   unit="updates")
+    # -- sharded datasets on disk (deepprompt_ros.data.sharded; training/streaming.py)
+    data_workers: int = param(0, "sharded dataset: worker processes that read and assemble the batches "
+                                 "(torch DataLoader); 0 = read in the training process, the batches drawn as in "
+                                 "memory (the same model as the folder format); > 0: the batches' demos drawn "
+                                 "from their own generator (seed), the same model for any count of workers", min=0)
+    select_max_demos: int = param(1000, "sharded dataset: most training demos (a seeded subset) that auto_select's "
+                                        "cross-validation and the PCA initialization of the linear part read",
+                                  min=3)
+    val_max_demos: int = param(1000, "sharded dataset: most validation demos (a seeded subset of the held-out "
+                                     "ones) the validation and the residual's judgement read", min=1)
 
     def __post_init__(self):
         # the type and range or choices of every field, then the rules a field's range cannot state

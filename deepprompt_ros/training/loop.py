@@ -26,12 +26,13 @@ from deepprompt_ros.training.resume import ResumeFile, data_digest, fit_key, res
 from deepprompt_ros.training.selection import judge_residual, nonlinear_dims, select_linear_part
 from deepprompt_ros.training.tensors import fit_normalization, to_tensors
 
-__all__ = ["train"]
+__all__ = ["train", "new_network", "new_optimizer"]
 
 
 def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: DemoDataset | None = None,
           info: dict | None = None, run: Runtime = SINGLE, resume: bool = False):
-    """Train on ``ds`` (a validation split is held out unless ``val_ds`` is given).
+    """Train on ``ds`` (a validation split is held out unless ``val_ds`` is given). A sharded dataset
+    on disk trains with bounded memory by :func:`deepprompt_ros.training.streaming.train_sharded`.
 
     With ``cfg.auto_select`` the linear part and the modes of the demos are chosen on the training
     split before training (:func:`~deepprompt_ros.training.selection.select_linear_part`) and the MLP
@@ -118,28 +119,13 @@ def _fit(train_ds: DemoDataset, val_ds: DemoDataset, cfg: TrainConfig, log, run:
     norm = fit_normalization(train_ds, cfg.n_points)
     data = to_tensors(train_ds, norm, cfg.n_points)
     val = to_tensors(val_ds, norm, cfg.n_points)
-    mcfg = ModelConfig(n_joints=len(train_ds.joint_names), phase_type=train_ds.phase_type, latent_dim=cfg.latent_dim,
-                       hidden=cfg.hidden, context_dims=tuple(train_ds.context_dims.items()),
-                       image_shape=train_ds.image_shape, sigma_y=cfg.sigma_y, var_floor=cfg.var_floor,
-                       phase_harmonics=cfg.phase_harmonics, decoder_basis=cfg.decoder_basis,
-                       basis_width=cfg.basis_width, residual_scale=cfg.residual_scale,
-                       variance_head=cfg.variance_head, latent_linear=cfg.latent_linear, via_noise=cfg.via_noise)
-    net = DeepProMPNet(mcfg)
+    net = new_network(train_ds, cfg)
     modes = None  # the MLP residual's targets when the linear part is taken within several modes
     if cfg.decoder_basis and cfg.basis_init == "pca":
         modes = init_basis_pca(net, data, cfg.basis_cov_reg,
                                joint_std=np.asarray(norm.y_std) if cfg.basis_cov_reg_units == "raw" else None,
                                n_modes=cfg.linear_modes, seed=cfg.seed).targets
-    if cfg.decoder_basis:  # the linear part learns at lr · basis_lr_scale (0: kept as initialized)
-        rest = [p for n, p in net.named_parameters() if not n.startswith("basis.")]
-        groups = [{"params": rest}]
-        if cfg.basis_lr_scale > 0:
-            groups.append({"params": list(net.basis.parameters()), "lr": cfg.lr * cfg.basis_lr_scale})
-        else:
-            net.basis.requires_grad_(False)
-        opt = torch.optim.Adam(groups, lr=cfg.lr)
-    else:
-        opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    opt = new_optimizer(net, cfg)
     data, val, modes = run.place(net, data, val, modes)  # to the run's device (no copy on the CPU)
     gen, draws = run.generators(cfg.seed)  # the batch's demos; the inputs given and z (one generator in one process)
     history, best, best_state, done = [], math.inf, None, 0
@@ -184,6 +170,32 @@ def _fit(train_ds: DemoDataset, val_ds: DemoDataset, cfg: TrainConfig, log, run:
         net.load_state_dict(best_state)
     net.eval()
     return net, norm, history, best
+
+
+def new_network(ds, cfg: TrainConfig) -> DeepProMPNet:
+    """A freshly initialized network (torch's global generator) for the data layout of ``ds`` (its
+    ``joint_names``, ``phase_type``, ``context_dims`` and ``image_shape``) and the architecture of ``cfg``."""
+    mcfg = ModelConfig(n_joints=len(ds.joint_names), phase_type=ds.phase_type, latent_dim=cfg.latent_dim,
+                       hidden=cfg.hidden, context_dims=tuple(ds.context_dims.items()),
+                       image_shape=ds.image_shape, sigma_y=cfg.sigma_y, var_floor=cfg.var_floor,
+                       phase_harmonics=cfg.phase_harmonics, decoder_basis=cfg.decoder_basis,
+                       basis_width=cfg.basis_width, residual_scale=cfg.residual_scale,
+                       variance_head=cfg.variance_head, latent_linear=cfg.latent_linear, via_noise=cfg.via_noise)
+    return DeepProMPNet(mcfg)
+
+
+def new_optimizer(net: DeepProMPNet, cfg: TrainConfig) -> torch.optim.Optimizer:
+    """Adam over the network's parameters; the linear part learns at lr · basis_lr_scale (0: kept as
+    initialized)."""
+    if not cfg.decoder_basis:
+        return torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    rest = [p for n, p in net.named_parameters() if not n.startswith("basis.")]
+    groups = [{"params": rest}]
+    if cfg.basis_lr_scale > 0:
+        groups.append({"params": list(net.basis.parameters()), "lr": cfg.lr * cfg.basis_lr_scale})
+    else:
+        net.basis.requires_grad_(False)
+    return torch.optim.Adam(groups, lr=cfg.lr)
 
 
 def selection_line(selection: dict) -> str:

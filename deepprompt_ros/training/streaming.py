@@ -1,0 +1,352 @@
+"""Training on a sharded dataset on disk (:class:`~deepprompt_ros.data.sharded.ShardedDataset`) with
+bounded memory (:func:`train_sharded`, which ``train --data`` runs on a folder with ``index.json``): the
+steps of :func:`deepprompt_ros.training.loop.train` with the demonstrations read when they are needed.
+
+- the normalization in one streaming pass over the training demos (:func:`streaming_normalization`:
+  per-joint and per-context mean and variance merged demo by demo, Chan, Golub & LeVeque, "Algorithms
+  for computing the sample variance", 1979, the pairwise update);
+- each update's batch read from the shards' memory maps and padded to the dataset's largest counts
+  (:class:`ShardBatches`), by ``data_workers`` worker processes of a ``torch.utils.data.DataLoader``;
+  the same loss (:func:`~deepprompt_ros.training.objectives.loss_fn` on the batch);
+- the validation on at most ``val_max_demos`` held-out demos, read in chunks of :data:`VAL_CHUNK`
+  (:func:`chunked_validation_mse`, the MSE of :func:`~deepprompt_ros.training.objectives.validation_mse`);
+- ``auto_select``'s cross-validation and the PCA initialization of the linear part on at most
+  ``select_max_demos`` training demos (a seeded subset), the residual judged on the validation
+  subset; both subsets recorded in the selection's metadata (``bounded``). With the linear part
+  taken within K > 1 modes, the other training demos get their modes from the subset's
+  (:func:`mode_labels`); one byte per demo is what the training keeps of each.
+
+With at most ``select_max_demos`` training and ``val_max_demos`` held-out demos and ``data_workers``
+0, the model is the one the same demos give in memory (the split, the draws and the initialization
+are the same; test/test_sharded_training.py measures the difference).
+"""
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import math
+import time
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from deepprompt_ros import __version__
+from deepprompt_ros.data.demo_dataset import DemoDataset
+from deepprompt_ros.data.demonstration import DatasetError, Demonstration
+from deepprompt_ros.data.sharded import ShardedDataset
+from deepprompt_ros.model.aggregation import bayesian_aggregate
+from deepprompt_ros.model.checkpoint import Normalization, save_checkpoint
+from deepprompt_ros.model.network import DeepProMPNet
+from deepprompt_ros.training.basis import ModeOffsets, basis_weights, init_basis_pca
+from deepprompt_ros.training.config import TrainConfig
+from deepprompt_ros.training.loop import new_network, new_optimizer, selection_line, train
+from deepprompt_ros.training.objectives import encode_all, loss_fn
+from deepprompt_ros.training.selection import judge_residual, nonlinear_dims, select_linear_part
+from deepprompt_ros.training.tensors import TensorData, to_tensors
+
+__all__ = ["train_sharded", "streaming_normalization", "ShardBatches", "chunked_validation_mse", "bounded_subset",
+           "mode_labels", "VAL_CHUNK"]
+
+#: Held-out demos encoded at once by the validation.
+VAL_CHUNK = 32
+
+
+def bounded_subset(ids: np.ndarray, cap: int, seed: int) -> np.ndarray:
+    """``ids`` when there are at most ``cap`` of them, else ``cap`` of them drawn without replacement
+    (seed ``[seed, cap]``); sorted."""
+    ids = np.asarray(ids, dtype=np.int64)
+    if len(ids) <= cap:
+        return ids
+    return np.sort(np.random.default_rng([seed, cap]).choice(ids, cap, replace=False))
+
+
+def streaming_normalization(ds: ShardedDataset, ids: Sequence[int], n_points: int) -> Normalization:
+    """:func:`~deepprompt_ros.training.tensors.fit_normalization` of the demos ``ids`` of ``ds`` in one
+    pass, one shard in memory at a time: per joint the mean and standard deviation (>= 1e-3) of the
+    demos resampled at ``n_points`` phases, per context modality those of its vectors."""
+    stats = {}  # name -> (count, mean, M2): the sum of squared deviations from the mean
+
+    def merge(name: str, v: np.ndarray):  # v (n, c): Chan et al.'s pairwise update
+        n_b, mean_b = v.shape[0], v.mean(0)
+        m2_b = ((v - mean_b) ** 2).sum(0)
+        if name not in stats:
+            stats[name] = (n_b, mean_b, m2_b)
+            return
+        n_a, mean_a, m2_a = stats[name]
+        n = n_a + n_b
+        delta = mean_b - mean_a
+        stats[name] = (n, mean_a + delta * n_b / n, m2_a + m2_b + delta ** 2 * n_a * n_b / n)
+
+    for _, demo in ds.iter_shards(ids, images=False):
+        merge("\0y", demo.resampled(n_points))
+        for name in ds.context_dims:
+            merge(name, np.asarray(demo.contexts[name], dtype=np.float64))
+
+    def mean_std(name):
+        n, mean, m2 = stats[name]
+        return mean, np.maximum(np.sqrt(m2 / n), 1e-3)
+
+    y_mean, y_std = mean_std("\0y")
+    ctx = {name: mean_std(name) for name in ds.context_dims}
+    return Normalization(y_mean, y_std, {k: v[0] for k, v in ctx.items()}, {k: v[1] for k, v in ctx.items()})
+
+
+class ShardBatches(torch.utils.data.Dataset):
+    """Batches of a sharded dataset as :class:`~deepprompt_ros.training.tensors.TensorData`: item
+    ``positions`` (a 1-D tensor of positions in ``ids``) is (positions, the batch of those demos,
+    normalized with ``norm``, resampled at ``n_points`` phases, contexts and images padded to the
+    dataset's largest counts: the tensors :func:`~deepprompt_ros.training.tensors.to_tensors` gives)."""
+
+    def __init__(self, ds: ShardedDataset, ids: np.ndarray, norm: Normalization, n_points: int):
+        self.ds, self.ids, self.norm, self.n_points = ds, np.asarray(ids, dtype=np.int64), norm, n_points
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def __getitem__(self, positions) -> tuple[torch.Tensor, TensorData]:
+        positions = torch.as_tensor(positions)
+        return positions, self.tensors(self.ds.read(self.ids[positions.numpy()]))
+
+    def tensors(self, demos: list[Demonstration]) -> TensorData:
+        """``demos`` as the tensors of :func:`~deepprompt_ros.training.tensors.to_tensors` (padded to the
+        dataset's largest counts)."""
+        ds, norm, b = self.ds, self.norm, len(demos)
+        y = np.stack([d.resampled(self.n_points) for d in demos])
+        y = (y - norm.y_mean) / norm.y_std
+        ctx, ctx_mask = {}, {}
+        for name, dim in ds.context_dims.items():
+            arr, mask = np.zeros((b, ds.max_contexts[name], dim)), np.zeros((b, ds.max_contexts[name]))
+            for i, d in enumerate(demos):
+                c = d.contexts[name]
+                arr[i, : len(c)] = (c - norm.ctx_mean[name]) / norm.ctx_std[name]
+                mask[i, : len(c)] = 1.0
+            ctx[name] = torch.tensor(arr, dtype=torch.float32)
+            ctx_mask[name] = torch.tensor(mask, dtype=torch.float32)
+        images = image_mask = None
+        if ds.image_shape is not None:
+            h, w = ds.image_shape
+            images, image_mask = torch.zeros(b, ds.max_images, 3, h, w), torch.zeros(b, ds.max_images)
+            for i, d in enumerate(demos):
+                images[i, : len(d.images)] = torch.from_numpy(d.images).permute(0, 3, 1, 2).float() / 255.0
+                image_mask[i, : len(d.images)] = 1.0
+        return TensorData(torch.tensor(y, dtype=torch.float32), torch.linspace(0, 1, self.n_points), ctx, ctx_mask,
+                          images, image_mask)
+
+
+class _BatchDraws(torch.utils.data.Sampler):
+    """``steps`` batches of ``batch_size`` positions in [0, n) drawn with replacement from a generator
+    seeded ``seed`` (the order the workers' batches come back in)."""
+
+    def __init__(self, n: int, batch_size: int, steps: int, seed: int):
+        self.n, self.batch_size, self.steps, self.seed = n, batch_size, steps, seed
+
+    def __len__(self) -> int:
+        return self.steps
+
+    def __iter__(self):
+        gen = torch.Generator().manual_seed(self.seed)
+        for _ in range(self.steps):
+            yield torch.randint(0, self.n, (self.batch_size,), generator=gen)
+
+
+@torch.no_grad()
+def chunked_validation_mse(net: DeepProMPNet, cfg: TrainConfig, batches: ShardBatches, norm: Normalization) -> dict:
+    """:func:`~deepprompt_ros.training.objectives.validation_mse` of the demos of ``batches`` (its
+    conditionings: ``val_via_points`` seeded random via-points, the contexts and images, both), read
+    and encoded :data:`VAL_CHUNK` demos at a time; the squared errors summed in float64."""
+    net.eval()
+    n, t = len(batches), batches.n_points
+    rank = torch.rand(n, t, generator=torch.Generator().manual_seed(12345)).argsort(1).argsort(1)
+    sums: dict[str, float] = {}
+    count = 0
+    scale = torch.tensor(norm.y_std, dtype=torch.float32)
+    for start in range(0, n, VAL_CHUNK):
+        positions = torch.arange(start, min(n, start + VAL_CHUNK))
+        _, data = batches[positions]
+        b = len(positions)
+        mu, var, kinds = encode_all(net, data, torch.arange(b))
+        via = (rank[positions] < cfg.val_via_points).float()
+        weights = {"via": [], "context": [], "both": []}
+        for kind, sl in kinds:
+            width = sl.stop - sl.start
+            if kind == "via":
+                weights["via"].append(via), weights["both"].append(via)
+                weights["context"].append(torch.zeros(b, width))
+            else:
+                mask = data.image_mask.amax(1, keepdim=True) if kind == "image" else data.ctx_mask[kind]
+                weights["via"].append(torch.zeros(b, width)), weights["context"].append(mask)
+                weights["both"].append(mask)
+        for name, parts in weights.items():
+            if name != "via" and len(kinds) == 1:
+                continue
+            mu_z, _ = bayesian_aggregate(mu, var, torch.cat(parts, 1))
+            err = (net.decode(mu_z, data.x) - data.y) * scale
+            sums[name] = sums.get(name, 0.0) + float((err.double() ** 2).sum())
+        count += int(data.y.numel())
+    out = {name: s / count for name, s in sums.items()}
+    out["mean"] = float(np.mean(list(out.values())))
+    net.train()
+    return out
+
+
+def train_sharded(ds: ShardedDataset, cfg: TrainConfig, out_path=None, log=print, info: dict | None = None):
+    """:func:`deepprompt_ros.training.loop.train` on a sharded dataset with bounded memory (see the
+    module's docstring). The validation split is that of
+    :meth:`~deepprompt_ros.data.demo_dataset.DemoDataset.split` (``n_val``, seed ``cfg.seed``).
+
+    Returns
+    -------
+    net : DeepProMPNet (best validation weights), norm : Normalization, history : list of dict
+    """
+    torch.set_num_threads(cfg.threads)
+    t0 = time.perf_counter()
+    n = len(ds)
+    n_val = cfg.n_val or max(1, n // 10)
+    if not 0 < n_val < n:
+        raise DatasetError(f"validation split of {n_val} needs 0 < n_val < {n} demonstrations")
+    perm = np.random.default_rng(cfg.seed).permutation(n)
+    train_ids, held_ids = np.sort(perm[n_val:]), np.sort(perm[:n_val])
+    select_ids = bounded_subset(train_ids, cfg.select_max_demos, cfg.seed)
+    val_ids = bounded_subset(held_ids, cfg.val_max_demos, cfg.seed)
+    selection = {"bounded": {"train_demos": len(train_ids), "held_out_demos": len(held_ids),
+                             "select_demos": len(select_ids), "val_demos": len(val_ids), "seed": cfg.seed,
+                             "select_max_demos": cfg.select_max_demos, "val_max_demos": cfg.val_max_demos}}
+    images_for_refit = cfg.auto_select and cfg.residual_folds >= 2
+
+    def select_ds() -> DemoDataset:  # the training demos auto_select and the PCA initialization read
+        return DemoDataset(tuple(ds.read(select_ids, images=images_for_refit)), f"{ds.source}:select")
+
+    if cfg.auto_select:
+        cfg, selection["linear_part"] = select_linear_part(select_ds(), cfg, len(ds.joint_names))
+    net, norm, history, best = _fit(ds, train_ids, val_ids, select_ids, cfg, log)
+    if cfg.auto_select:
+        def refit(fold_ds):  # the residual's cross-validation, in memory on folds of the selection's demos
+            fold_net, fold_norm, _ = train(fold_ds, dataclasses.replace(cfg, auto_select=False), log=lambda s: None)
+            return fold_net, fold_norm
+
+        val_ds = DemoDataset(tuple(ds.read(val_ids)), f"{ds.source}:val")
+        fit_ds = select_ds() if images_for_refit else None
+        net, selection["residual"] = judge_residual(net, norm, ds.joint_names, val_ds, cfg, fit_ds, refit)
+        if not selection["residual"]["kept"] and cfg.linear_modes > 1:
+            log(f"residual dropped beside the linear part of {cfg.linear_modes} modes: training again with one")
+            selection["modes_fallback"] = {"linear_modes": cfg.linear_modes, "residual": selection.pop("residual")}
+            cfg = dataclasses.replace(cfg, linear_modes=1, latent_dim=cfg.latent_linear + nonlinear_dims(cfg, 1))
+            net, norm, history, best = _fit(ds, train_ids, val_ids, select_ids, cfg, log)
+            net, selection["residual"] = judge_residual(net, norm, ds.joint_names, val_ds, cfg, fit_ds, refit)
+        del val_ds, fit_ds
+        cfg = dataclasses.replace(cfg, residual_scale=net.cfg.residual_scale)
+        log(selection_line(selection))
+    if info is not None:
+        info.update(train_config=dataclasses.asdict(cfg), selection=selection)
+    if out_path is not None:
+        meta = {
+            "train_config": dataclasses.asdict(cfg),
+            "selection": selection,
+            "provenance": {"dataset": ds.source, "n_train": len(train_ids), "n_val": len(held_ids),
+                           "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                           "deepprompt_ros": __version__, "torch": torch.__version__},
+            "metrics": {"best_val_mse_rad2": best, "wall_time_s": time.perf_counter() - t0},
+        }
+        save_checkpoint(out_path, net, norm, ds.joint_names, meta)
+    return net, norm, history
+
+
+def _fit(ds: ShardedDataset, train_ids: np.ndarray, val_ids: np.ndarray, select_ids: np.ndarray, cfg: TrainConfig,
+         log):
+    """:func:`deepprompt_ros.training.loop._fit` reading the demos from ``ds``: the normalization of
+    ``train_ids`` streamed, the PCA initialization on ``select_ids``, ``cfg.steps`` updates on
+    batches of ``train_ids``, the validation on ``val_ids``. Returns (net with the best validation
+    weights, normalization, history, best validation MSE)."""
+    torch.manual_seed(cfg.seed)
+    norm = streaming_normalization(ds, train_ids, cfg.n_points)
+    net = new_network(ds, cfg)
+    modes = None  # the MLP residual's targets when the linear part is taken within several modes
+    if cfg.decoder_basis and cfg.basis_init == "pca":
+        sub = to_tensors(DemoDataset(tuple(ds.read(select_ids, images=False)), ds.source), norm, cfg.n_points)
+        init = init_basis_pca(net, sub, cfg.basis_cov_reg,
+                              joint_std=np.asarray(norm.y_std) if cfg.basis_cov_reg_units == "raw" else None,
+                              n_modes=cfg.linear_modes, seed=cfg.seed)
+        if init.targets is not None:  # per training demo its mode's offsets: (K, T, d) and a label per demo
+            labels = mode_labels(ds, train_ids, select_ids, init.modes.labels, net, sub, norm, cfg.n_points)
+            first = [int(np.argmax(init.modes.labels == g)) for g in range(init.modes.n_modes)]
+            modes = (init.targets.offsets[first], torch.as_tensor(labels), init.targets.var)
+        del sub, init
+    opt = new_optimizer(net, cfg)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    batches = ShardBatches(ds, train_ids, norm, cfg.n_points)
+    val = ShardBatches(ds, val_ids, norm, cfg.n_points)
+    n_train = len(train_ids)
+    loader = None
+    if cfg.data_workers > 0:
+        loader = iter(torch.utils.data.DataLoader(
+            batches, batch_size=None, sampler=_BatchDraws(n_train, cfg.batch_size, cfg.steps, cfg.seed),
+            num_workers=cfg.data_workers, worker_init_fn=_worker_threads))
+    history, best, best_state = [], math.inf, None
+    t0 = time.perf_counter()
+    local = torch.arange(cfg.batch_size)
+    for step in range(1, cfg.steps + 1):
+        if loader is None:  # drawn as loop._fit draws them
+            idx, data = batches[torch.randint(0, n_train, (cfg.batch_size,), generator=gen)]
+        else:
+            try:
+                idx, data = next(loader)
+            except DatasetError as exc:  # re-raised from a worker with its traceback: the message is at its end
+                raise DatasetError(str(exc).rstrip().rpartition("DatasetError: ")[2]) from None
+        beta = cfg.beta * min(1.0, step / max(1, cfg.kl_anneal_steps))  # KL annealing
+        batch_modes = None if modes is None else ModeOffsets(modes[0][modes[1][idx].long()], modes[2])
+        loss, nll, kl, cons = loss_fn(net, cfg, data, local, gen, beta, batch_modes)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if step % cfg.val_every == 0 or step == cfg.steps:
+            v = chunked_validation_mse(net, cfg, val, norm)
+            elapsed = time.perf_counter() - t0
+            rec = {"step": step, "loss": loss.item(), "nll": nll, "kl": kl, "consistency": cons, "beta": beta, "val": v,
+                   "samples_per_s": step * cfg.batch_size / elapsed}
+            history.append(rec)
+            mark = ""
+            if v["mean"] < best:
+                best, best_state, mark = v["mean"], {k: t.clone() for k, t in net.state_dict().items()}, " *best"
+            log(f"step {step:6d}/{cfg.steps}  loss {loss.item():10.3f}  nll {nll:9.3f}  kl {kl:8.3f}  "
+                f"val_mse {v['mean']:.3e} rad²  {rec['samples_per_s']:.0f} traj/s{mark}")
+    del loader  # ends the worker processes
+    net.load_state_dict(best_state)
+    net.eval()
+    return net, norm, history, best
+
+
+def mode_labels(ds: ShardedDataset, train_ids: np.ndarray, select_ids: np.ndarray, select_labels: np.ndarray,
+                net: DeepProMPNet, select_data: TensorData, norm: Normalization, n_points: int) -> np.ndarray:
+    """The mode (int8) of every training demo ``train_ids`` when the linear part is taken within K > 1
+    modes found on the demos ``select_ids`` (their labels ``select_labels``,
+    :func:`~deepprompt_ros.training.basis.weight_modes`): those keep theirs; every other demo, read
+    in one streaming pass, gets the mode of the tied-covariance Gaussian classifier of the selection's
+    modes (the rule of weight_modes' mixture): argmax_g log π_g − ½ (w − m_g)ᵀ Σ⁻¹ (w − m_g) of its
+    basis weights w (normalized units), with the modes' shares π_g, means m_g and pooled within-mode
+    covariance Σ (plus 1e-6 of its mean variance on the diagonal) of the selection's weights."""
+    phi = net.basis_functions(select_data.x.double()).numpy()  # (T, n_b)
+    w = basis_weights(phi, select_data.y.double().numpy())  # (n_sel, P)
+    k = int(select_labels.max()) + 1
+    means = np.stack([w[select_labels == g].mean(0) for g in range(k)])
+    dev = w - means[select_labels]
+    cov = dev.T @ dev / max(1, len(w) - k)
+    cov += 1e-6 * float(np.mean(np.diag(cov))) * np.eye(cov.shape[0])
+    chol = np.linalg.cholesky(cov)
+    log_share = np.log(np.bincount(select_labels, minlength=k) / len(w))
+    labels = np.empty(len(train_ids), dtype=np.int8)
+    position = {int(i): p for p, i in enumerate(train_ids)}
+    for p, i in enumerate(select_ids):
+        labels[position[int(i)]] = select_labels[p]
+    rest = np.setdiff1d(train_ids, select_ids)
+    for i, demo in ds.iter_shards(rest, images=False):
+        y = (demo.resampled(n_points) - norm.y_mean) / norm.y_std
+        wi = basis_weights(phi, y[None])[0]
+        maha = (np.linalg.solve(chol, (wi - means).T) ** 2).sum(0)  # (K,)
+        labels[position[i]] = int(np.argmax(log_share - 0.5 * maha))
+    return labels
+
+
+def _worker_threads(_worker_id: int):
+    """A worker process assembles batches with one torch thread (the training keeps its own)."""
+    torch.set_num_threads(1)
