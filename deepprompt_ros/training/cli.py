@@ -15,8 +15,8 @@ choices are printed and stored in the checkpoint. The last line printed is a JSO
 ``world_size``). The training YAML files of the shipped models are
 ``config/train_*.yaml``. ``--data`` takes a folder of demonstrations, or a sharded dataset
 (a folder with ``index.json``: :mod:`deepprompt_ros.data.sharded`), which is read lazily and
-trained with bounded memory (:mod:`deepprompt_ros.training.streaming`; in one process on the CPU,
-without ``--resume``). Exit status 2 with a
+trained with bounded memory (:mod:`deepprompt_ros.training.streaming`; on the CPU, without
+``--resume``). Exit status 2 with a
 message (``error: ...``) naming every refused key or value when the configuration or the data
 are refused.
 
@@ -85,11 +85,9 @@ def _train(args, cfg: TrainConfig, run: distributed.Runtime) -> int:
         else:
             ds = builtin_dataset(args.builtin, seed=cfg.seed)
         sharded = isinstance(ds, ShardedDataset)
-        if sharded and (run.world_size > 1 or args.resume or run.device.type != "cpu"):
-            raise ValueError(f"the sharded dataset '{args.data}' trains in one process on the CPU and without "
-                             f"--resume (this run: {run.world_size} process(es) on {run.device}"
-                             f"{', --resume' if args.resume else ''}): expected one process, device cpu and no "
-                             "--resume, or a folder of demonstrations")
+        if sharded and args.resume:
+            raise ValueError(f"--resume: the sharded dataset '{args.data}' trains without a resume file: expected a "
+                             "run without --resume, or a folder of demonstrations")
     except (ValueError, DatasetError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -99,8 +97,8 @@ def _train(args, cfg: TrainConfig, run: distributed.Runtime) -> int:
         f"process, {cfg.threads} thread(s) each")
     info = {}
     try:
-        trainer = train_sharded if sharded else functools.partial(train, run=run, resume=args.resume)
-        _, _, hist = trainer(ds, cfg, out_path=args.out, info=info, log=say)
+        trainer = train_sharded if sharded else functools.partial(train, resume=args.resume)
+        _, _, hist = trainer(ds, cfg, out_path=args.out, info=info, log=say, run=run)
     except (ValueError, DatasetError) as exc:  # data the configuration cannot train on, a refused resume file
         print(f"error: {exc}", file=sys.stderr)
         return 2

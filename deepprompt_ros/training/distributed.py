@@ -27,7 +27,7 @@ import torch.distributed as dist
 from deepprompt_ros.model.network import DeepProMPNet
 
 __all__ = ["DEVICES", "Runtime", "SINGLE", "resolve_device", "runtime_from_env", "init", "shutdown", "LossModule",
-           "wrap"]
+           "wrap", "judge_on_main"]
 
 #: values of ``TrainConfig.device``
 DEVICES = ("auto", "cpu", "cuda")
@@ -129,6 +129,13 @@ def _to(obj, device: torch.device):
     if isinstance(obj, tuple) and hasattr(obj, "_fields"):  # a NamedTuple
         return type(obj)(*(_to(v, device) for v in obj))
     raise TypeError(f"cannot move {type(obj).__name__} to {device}")
+
+
+def judge_on_main(run: Runtime, net, judge):
+    """``judge()`` -> (network, record) made on process 0 alone (the residual's judgement); the record
+    shared with every process, the others keeping their ``net``."""
+    kept, record = judge() if run.is_main else (net, None)
+    return kept, run.broadcast(record)
 
 
 #: the runtime of a plain (not torchrun) process on the CPU

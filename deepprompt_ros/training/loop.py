@@ -20,7 +20,7 @@ from deepprompt_ros.model.checkpoint import save_checkpoint
 from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
 from deepprompt_ros.training.basis import init_basis_pca
 from deepprompt_ros.training.config import TrainConfig
-from deepprompt_ros.training.distributed import SINGLE, Runtime, wrap
+from deepprompt_ros.training.distributed import SINGLE, Runtime, judge_on_main, wrap
 from deepprompt_ros.training.objectives import loss_fn, validation_mse
 from deepprompt_ros.training.resume import ResumeFile, data_digest, fit_key, resume_path
 from deepprompt_ros.training.selection import judge_residual, nonlinear_dims, select_linear_part
@@ -75,14 +75,14 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
             fold_net, fold_norm, _ = train(fold_ds, dataclasses.replace(cfg, auto_select=False), log=lambda s: None)
             return fold_net, fold_norm
 
-        net, selection["residual"] = _on_main(run, net, lambda: judge_residual(
+        net, selection["residual"] = judge_on_main(run, net, lambda: judge_residual(
             net, norm, ds.joint_names, val_ds, cfg, train_ds, refit))
         if not selection["residual"]["kept"] and cfg.linear_modes > 1:
             log(f"residual dropped beside the linear part of {cfg.linear_modes} modes: training again with one")
             selection["modes_fallback"] = {"linear_modes": cfg.linear_modes, "residual": selection.pop("residual")}
             cfg = dataclasses.replace(cfg, linear_modes=1, latent_dim=cfg.latent_linear + nonlinear_dims(cfg, 1))
             net, norm, history, best = _fit(train_ds, val_ds, cfg, log, run, ckpt, fit_no=1)
-            net, selection["residual"] = _on_main(run, net, lambda: judge_residual(
+            net, selection["residual"] = judge_on_main(run, net, lambda: judge_residual(
                 net, norm, ds.joint_names, val_ds, cfg, train_ds, refit))
         cfg = dataclasses.replace(cfg, residual_scale=net.cfg.residual_scale)
         log(selection_line(selection))
@@ -100,12 +100,6 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
         }
         save_checkpoint(out_path, net, norm, ds.joint_names, meta)
     return net, norm, history
-
-
-def _on_main(run: Runtime, net, judge):
-    """``judge()`` -> (net, record) on process 0; the record shared, the others keep their ``net``."""
-    kept, record = judge() if run.is_main else (net, None)
-    return kept, run.broadcast(record)
 
 
 def _fit(train_ds: DemoDataset, val_ds: DemoDataset, cfg: TrainConfig, log, run: Runtime = SINGLE,

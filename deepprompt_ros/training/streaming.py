@@ -16,6 +16,9 @@ steps of :func:`deepprompt_ros.training.loop.train` with the demonstrations read
   taken within K > 1 modes, the other training demos get their modes from the subset's
   (:func:`mode_labels`); one byte per demo is what the training keeps of each.
 
+Under torchrun (:mod:`deepprompt_ros.training.distributed`, the CPU) each process reads its share of
+every batch, process 0 selects, validates and writes; a sharded training writes no resume file.
+
 With at most ``select_max_demos`` training and ``val_max_demos`` held-out demos and ``data_workers``
 0, the model is the one the same demos give in memory (the split, the draws and the initialization
 are the same; test/test_sharded_training.py measures the difference).
@@ -40,6 +43,7 @@ from deepprompt_ros.model.checkpoint import Normalization, save_checkpoint
 from deepprompt_ros.model.network import DeepProMPNet
 from deepprompt_ros.training.basis import ModeOffsets, basis_weights, init_basis_pca
 from deepprompt_ros.training.config import TrainConfig
+from deepprompt_ros.training.distributed import SINGLE, Runtime, judge_on_main, wrap
 from deepprompt_ros.training.loop import new_network, new_optimizer, selection_line, train
 from deepprompt_ros.training.objectives import encode_all, loss_fn
 from deepprompt_ros.training.selection import judge_residual, nonlinear_dims, select_linear_part
@@ -136,10 +140,11 @@ class ShardBatches(torch.utils.data.Dataset):
 
 class _BatchDraws(torch.utils.data.Sampler):
     """``steps`` batches of ``batch_size`` positions in [0, n) drawn with replacement from a generator
-    seeded ``seed`` (the order the workers' batches come back in)."""
+    seeded ``seed`` (the order the workers' batches come back in), each cut to this process's share
+    (``share``: :meth:`~deepprompt_ros.training.distributed.Runtime.share`)."""
 
-    def __init__(self, n: int, batch_size: int, steps: int, seed: int):
-        self.n, self.batch_size, self.steps, self.seed = n, batch_size, steps, seed
+    def __init__(self, n: int, batch_size: int, steps: int, seed: int, share=lambda idx: idx):
+        self.n, self.batch_size, self.steps, self.seed, self.share = n, batch_size, steps, seed, share
 
     def __len__(self) -> int:
         return self.steps
@@ -147,7 +152,7 @@ class _BatchDraws(torch.utils.data.Sampler):
     def __iter__(self):
         gen = torch.Generator().manual_seed(self.seed)
         for _ in range(self.steps):
-            yield torch.randint(0, self.n, (self.batch_size,), generator=gen)
+            yield self.share(torch.randint(0, self.n, (self.batch_size,), generator=gen))
 
 
 @torch.no_grad()
@@ -190,16 +195,22 @@ def chunked_validation_mse(net: DeepProMPNet, cfg: TrainConfig, batches: ShardBa
     return out
 
 
-def train_sharded(ds: ShardedDataset, cfg: TrainConfig, out_path=None, log=print, info: dict | None = None):
+def train_sharded(ds: ShardedDataset, cfg: TrainConfig, out_path=None, log=print, info: dict | None = None,
+                  run: Runtime = SINGLE):
     """:func:`deepprompt_ros.training.loop.train` on a sharded dataset with bounded memory (see the
     module's docstring). The validation split is that of
     :meth:`~deepprompt_ros.data.demo_dataset.DemoDataset.split` (``n_val``, seed ``cfg.seed``).
+    ``run``: this process's place in a data-parallel run on the CPU, as in ``train`` (each process reads
+    its share of every batch; the selection and the residual's judgement on process 0, shared).
 
     Returns
     -------
     net : DeepProMPNet (best validation weights), norm : Normalization, history : list of dict
     """
     torch.set_num_threads(cfg.threads)
+    run.check(cfg)
+    if run.device.type != "cpu":
+        raise ValueError(f"a sharded dataset trains on the CPU (this run: {run.device}): expected device cpu")
     t0 = time.perf_counter()
     n = len(ds)
     n_val = cfg.n_val or max(1, n // 10)
@@ -218,34 +229,38 @@ def train_sharded(ds: ShardedDataset, cfg: TrainConfig, out_path=None, log=print
         return DemoDataset(tuple(ds.read(select_ids, images=images_for_refit)), f"{ds.source}:select")
 
     if cfg.auto_select:
-        cfg, selection["linear_part"] = select_linear_part(select_ds(), cfg, len(ds.joint_names))
-    net, norm, history, best = _fit(ds, train_ids, val_ids, select_ids, cfg, log)
+        cfg, selection["linear_part"] = run.broadcast(
+            select_linear_part(select_ds(), cfg, len(ds.joint_names)) if run.is_main else None)
+    net, norm, history, best = _fit(ds, train_ids, val_ids, select_ids, cfg, log, run)
     if cfg.auto_select:
         def refit(fold_ds):  # the residual's cross-validation, in memory on folds of the selection's demos
             fold_net, fold_norm, _ = train(fold_ds, dataclasses.replace(cfg, auto_select=False), log=lambda s: None)
             return fold_net, fold_norm
 
-        val_ds = DemoDataset(tuple(ds.read(val_ids)), f"{ds.source}:val")
+        val_ds = DemoDataset(tuple(ds.read(val_ids)), f"{ds.source}:val") if run.is_main else None
         fit_ds = select_ds() if images_for_refit else None
-        net, selection["residual"] = judge_residual(net, norm, ds.joint_names, val_ds, cfg, fit_ds, refit)
+        net, selection["residual"] = judge_on_main(run, net, lambda: judge_residual(
+            net, norm, ds.joint_names, val_ds, cfg, fit_ds, refit))
         if not selection["residual"]["kept"] and cfg.linear_modes > 1:
             log(f"residual dropped beside the linear part of {cfg.linear_modes} modes: training again with one")
             selection["modes_fallback"] = {"linear_modes": cfg.linear_modes, "residual": selection.pop("residual")}
             cfg = dataclasses.replace(cfg, linear_modes=1, latent_dim=cfg.latent_linear + nonlinear_dims(cfg, 1))
-            net, norm, history, best = _fit(ds, train_ids, val_ids, select_ids, cfg, log)
-            net, selection["residual"] = judge_residual(net, norm, ds.joint_names, val_ds, cfg, fit_ds, refit)
+            net, norm, history, best = _fit(ds, train_ids, val_ids, select_ids, cfg, log, run)
+            net, selection["residual"] = judge_on_main(run, net, lambda: judge_residual(
+                net, norm, ds.joint_names, val_ds, cfg, fit_ds, refit))
         del val_ds, fit_ds
         cfg = dataclasses.replace(cfg, residual_scale=net.cfg.residual_scale)
         log(selection_line(selection))
     if info is not None:
         info.update(train_config=dataclasses.asdict(cfg), selection=selection)
-    if out_path is not None:
+    if out_path is not None and run.is_main:
         meta = {
             "train_config": dataclasses.asdict(cfg),
             "selection": selection,
             "provenance": {"dataset": ds.source, "n_train": len(train_ids), "n_val": len(held_ids),
                            "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-                           "deepprompt_ros": __version__, "torch": torch.__version__},
+                           "deepprompt_ros": __version__, "torch": torch.__version__,
+                           "device": str(run.device), "backend": run.backend, "world_size": run.world_size},
             "metrics": {"best_val_mse_rad2": best, "wall_time_s": time.perf_counter() - t0},
         }
         save_checkpoint(out_path, net, norm, ds.joint_names, meta)
@@ -253,7 +268,7 @@ def train_sharded(ds: ShardedDataset, cfg: TrainConfig, out_path=None, log=print
 
 
 def _fit(ds: ShardedDataset, train_ids: np.ndarray, val_ids: np.ndarray, select_ids: np.ndarray, cfg: TrainConfig,
-         log):
+         log, run: Runtime = SINGLE):
     """:func:`deepprompt_ros.training.loop._fit` reading the demos from ``ds``: the normalization of
     ``train_ids`` streamed, the PCA initialization on ``select_ids``, ``cfg.steps`` updates on
     batches of ``train_ids``, the validation on ``val_ids``. Returns (net with the best validation
@@ -273,21 +288,22 @@ def _fit(ds: ShardedDataset, train_ids: np.ndarray, val_ids: np.ndarray, select_
             modes = (init.targets.offsets[first], torch.as_tensor(labels), init.targets.var)
         del sub, init
     opt = new_optimizer(net, cfg)
-    gen = torch.Generator().manual_seed(cfg.seed)
+    gen, draws = run.generators(cfg.seed)  # the batch's demos; the inputs given and z (one generator in one process)
+    model = wrap(net, loss_fn, run)  # DDP averages the processes' gradients
     batches = ShardBatches(ds, train_ids, norm, cfg.n_points)
     val = ShardBatches(ds, val_ids, norm, cfg.n_points)
     n_train = len(train_ids)
     loader = None
     if cfg.data_workers > 0:
         loader = iter(torch.utils.data.DataLoader(
-            batches, batch_size=None, sampler=_BatchDraws(n_train, cfg.batch_size, cfg.steps, cfg.seed),
+            batches, batch_size=None, sampler=_BatchDraws(n_train, cfg.batch_size, cfg.steps, cfg.seed, run.share),
             num_workers=cfg.data_workers, worker_init_fn=_worker_threads))
     history, best, best_state = [], math.inf, None
     t0 = time.perf_counter()
-    local = torch.arange(cfg.batch_size)
+    local = torch.arange(cfg.batch_size // run.world_size)
     for step in range(1, cfg.steps + 1):
         if loader is None:  # drawn as loop._fit draws them
-            idx, data = batches[torch.randint(0, n_train, (cfg.batch_size,), generator=gen)]
+            idx, data = batches[run.share(torch.randint(0, n_train, (cfg.batch_size,), generator=gen))]
         else:
             try:
                 idx, data = next(loader)
@@ -295,11 +311,11 @@ def _fit(ds: ShardedDataset, train_ids: np.ndarray, val_ids: np.ndarray, select_
                 raise DatasetError(str(exc).rstrip().rpartition("DatasetError: ")[2]) from None
         beta = cfg.beta * min(1.0, step / max(1, cfg.kl_anneal_steps))  # KL annealing
         batch_modes = None if modes is None else ModeOffsets(modes[0][modes[1][idx].long()], modes[2])
-        loss, nll, kl, cons = loss_fn(net, cfg, data, local, gen, beta, batch_modes)
+        loss, nll, kl, cons = model(cfg, data, local, draws, beta, batch_modes)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        if step % cfg.val_every == 0 or step == cfg.steps:
+        if run.is_main and (step % cfg.val_every == 0 or step == cfg.steps):
             v = chunked_validation_mse(net, cfg, val, norm)
             elapsed = time.perf_counter() - t0
             rec = {"step": step, "loss": loss.item(), "nll": nll, "kl": kl, "consistency": cons, "beta": beta, "val": v,
@@ -311,7 +327,8 @@ def _fit(ds: ShardedDataset, train_ids: np.ndarray, val_ids: np.ndarray, select_
             log(f"step {step:6d}/{cfg.steps}  loss {loss.item():10.3f}  nll {nll:9.3f}  kl {kl:8.3f}  "
                 f"val_mse {v['mean']:.3e} rad²  {rec['samples_per_s']:.0f} traj/s{mark}")
     del loader  # ends the worker processes
-    net.load_state_dict(best_state)
+    if run.is_main:
+        net.load_state_dict(best_state)
     net.eval()
     return net, norm, history, best
 
