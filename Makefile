@@ -31,10 +31,8 @@ run-dual: setup
 	$(PY) -m deepprompt_ros.run_main --launch dual_arm
 
 # Train the shipped primitives in models/ (seeded: the same command gives the same weights and choices;
-# the metadata's creation time and wall time differ). train-reach and train-shake give
-# models/gen3_lite_reach and models/wam_shake; the sine file (the MLP decoder, auto_select off: see its
-# configuration) was written by an earlier version of the training's subset sampling, so train-sine gives
-# other weights of the same configuration.
+# the metadata's creation time and wall time differ): train-sine, train-reach and train-shake give
+# models/bimodal_sine, models/gen3_lite_reach and models/wam_shake.
 TRAIN := $(PY) -m deepprompt_ros.training.cli
 models: train-sine train-reach train-shake
 train-sine: setup

@@ -212,17 +212,19 @@ class DeepProMP:
                   contexts: Mapping[str, np.ndarray] | None = None,
                   context_weights: Mapping[str, Sequence[float]] | None = None,
                   images=None, image_weight: float = 1.0, via_noise: float | None = None,
-                  n_candidates: int = 16) -> LatentGaussian:
+                  n_candidates: int = 32) -> LatentGaussian:
         """q(z | A, C, ω): Bayesian aggregation (paper Eq. 1 and the importance-weighted Eq. 3), and for
         a split latent (``latent_linear`` k_l > 0) exact Gaussian conditioning of z_lin on the via-points.
 
         Plain latent: the aggregation of every element. Split latent
         (:mod:`deepprompt_ros.primitive.linear_conditioning`): the prior of z_lin is the aggregation
         q_c of the contexts and images alone; z_nl candidates (the mean of the aggregation of
-        everything, via-points included, and ``n_candidates`` seeded draws from it) are weighted by
-        the closed-form marginal likelihood of the via-points; z_lin is conditioned exactly on the
+        everything, via-points included, and ``n_candidates`` seeded quasi-random points of it) are
+        weighted by the closed-form marginal likelihood of the via-points times q_c(z_nl) / q_all(z_nl)
+        (importance weights of the posterior under the prior q_c); z_lin is conditioned exactly on the
         observed joints of each via-point, whose weight ω scales its precision. The mean is the
-        best-weighted candidate with its z_lin posterior mean; :meth:`sample` draws candidates by
+        candidate of the highest posterior density with its z_lin posterior mean; :meth:`sample` draws
+        candidates by
         weight and z_lin from its posterior, so samples pass the via-points within the noise.
         Without a via-point of weight > 0 both give the aggregation. The latent records q_c
         (``context_mean``, ``context_var``), the prior of :meth:`refine_map`.
@@ -248,7 +250,7 @@ class DeepProMP:
             Split latent: the via-points' standard deviation ν (normalized joint units: rad / the
             joint's normalization std); default ``ModelConfig.via_noise``.
         n_candidates : int
-            Split latent: draws of z_nl besides the mean of its aggregation.
+            Split latent: quasi-random points of z_nl besides the mean of its aggregation.
         """
         noise = self.cfg.via_noise if via_noise is None else via_noise
         if isinstance(noise, bool) or not (isinstance(noise, (int, float, np.floating, np.integer))

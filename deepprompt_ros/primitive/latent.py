@@ -56,7 +56,8 @@ class LinearBlock:
     candidates : array, shape (C, k)
         Full latents [posterior mean of z_lin given the candidate, the candidate of z_nl].
     weights : array, shape (C,)
-        Importance weights of the candidates (closed-form marginal likelihood of the via-points), sum 1.
+        Importance weights of the candidates (closed-form marginal likelihood of the via-points times
+        q_c(z_nl) / q_all(z_nl)), sum 1.
     chol : array, shape (M, M) or (k_l, k_l)
     design : array, shape (M, k_l), or None
     form : {"observation", "information"}
@@ -131,7 +132,7 @@ class LatentGaussian:
 
     ``mean`` is the latent the robot executes and ``var`` the diagonal summary that blending (paper
     Eq. 4) and the server's handles use. With ``linear`` set (a split latent), ``mean`` is the
-    best-weighted candidate with its z_lin posterior mean, ``var`` the diagonal of the z_lin
+    candidate of the highest posterior density with its z_lin posterior mean, ``var`` the diagonal of the z_lin
     posterior covariance and the variance of q(z_nl) (the candidates' proposal); sampling and the
     full covariance come from ``linear``.
 

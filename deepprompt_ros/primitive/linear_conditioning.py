@@ -10,9 +10,11 @@ them), ν = ``via_noise`` (normalized units) and σ_j the joint's normalization 
 z_lin is the aggregation of the contexts and images (q_c, diagonal). The posterior is Gaussian with
 a full k_l × k_l covariance, the same for every z_nl; its mean depends on z_nl through the offset.
 
-z_nl is not linear: candidates (the mean of its aggregation q(z_nl) of all inputs and seeded draws
-from it) are weighted by the closed-form marginal likelihood of the via-points, N(r; H m, H Σ Hᵀ + R)
-(up to the factor every candidate shares). See :meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.condition`.
+z_nl is not linear: candidates (the mean of its aggregation q_all(z_nl) of all inputs and seeded
+quasi-random points of it) are weighted by the closed-form marginal likelihood of the via-points,
+N(r; H m, H Σ Hᵀ + R) (up to the factor every candidate shares), times q_c(z_nl) / q_all(z_nl):
+importance weights of the posterior under the prior q_c of the contexts and images, the proposal
+q_all. See :meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.condition`.
 
 Numerics (float64): everything is whitened (rows divided by their noise, columns times the prior
 std), then factored by Cholesky — of I + G Gᵀ (M × M) when there are no more rows M than k_l, of the
@@ -30,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import statistics
 import time
 from typing import TYPE_CHECKING
 
@@ -42,11 +45,11 @@ if TYPE_CHECKING:
     from deepprompt_ros.primitive.numpy_net import NumpyNet
 
 __all__ = ["whitened_posterior", "condition_split", "linear_block_variance", "SplitRefinement", "refine_split",
-           "TIE_TOLERANCE"]
+           "TIE_TOLERANCE", "normal_points"]
 
-#: Candidates of z_nl whose log-likelihoods of the via-points are within this relative amount of the
-#: best are tied (rounding, not evidence: the via-points lie where the MLP does not depend on z_nl);
-#: the executed mean is the first of them, the mean of q(z_nl) when it is among them.
+#: Candidates of z_nl whose log posterior densities are within this relative amount of the best are
+#: tied (rounding, not evidence); the executed mean is the first of them, the mean of q_all(z_nl) when
+#: it is among them.
 TIE_TOLERANCE = 1e-9
 
 
@@ -128,13 +131,45 @@ def _lower_solve(chol: np.ndarray, b: np.ndarray) -> np.ndarray:
 _EPS_CACHE: dict[tuple[int, int, int], np.ndarray] = {}
 
 
+def _primes(n: int) -> list[int]:
+    """The first ``n`` primes."""
+    out, c = [], 2
+    while len(out) < n:
+        if all(c % p for p in out if p * p <= c):
+            out.append(c)
+        c += 1
+    return out
+
+
+def normal_points(n: int, dim: int, seed: int) -> np.ndarray:
+    """``n`` quasi-random standard normal points in ``dim`` dimensions, (n, dim): the Halton sequence
+    (the radical inverses of 1 … n in the first ``dim`` prime bases; J. H. Halton, Numer. Math. 2, 1960)
+    shifted modulo 1 by a uniform vector seeded by ``seed`` (Cranley & Patterson, SIAM J. Numer. Anal.
+    13(6), 1976), through the inverse normal distribution function. They cover the distribution more
+    evenly than as many independent draws: fewer candidates of z_nl leave no mode unvisited and fewer
+    fall between the modes."""
+    u = np.empty((n, dim))
+    for j, base in enumerate(_primes(dim)):
+        for i in range(n):
+            k, f, r = i + 1, 1.0, 0.0
+            while k:
+                f /= base
+                r += f * (k % base)
+                k //= base
+            u[i, j] = r
+    u = (u + np.random.default_rng(seed).random(dim)) % 1.0
+    inv = statistics.NormalDist().inv_cdf
+    return np.vectorize(lambda v: inv(min(max(v, 1e-12), 1.0 - 1e-12)), otypes=[float])(u)
+
+
 def _candidates(mean_nl: np.ndarray, var_nl: np.ndarray, n: int, seed: int) -> np.ndarray:
-    """The mean of q(z_nl) and ``n`` seeded draws from it, (n + 1, k − k_l). The standard normal
-    draws of a (n, k − k_l, seed) are made once (read-only, shared by every call and thread)."""
+    """The mean of q(z_nl) and ``n`` seeded quasi-random points of it (:func:`normal_points`),
+    (n + 1, k − k_l). The standard normal points of a (n, k − k_l, seed) are made once (read-only,
+    shared by every call and thread)."""
     key = (n, mean_nl.shape[0], seed)
     eps = _EPS_CACHE.get(key)
     if eps is None:
-        eps = np.random.default_rng(seed).standard_normal((n, mean_nl.shape[0]))
+        eps = normal_points(n, mean_nl.shape[0], seed)
         eps.flags.writeable = False
         if len(_EPS_CACHE) >= 16:
             _EPS_CACHE.clear()
@@ -148,7 +183,7 @@ def _candidates(mean_nl: np.ndarray, var_nl: np.ndarray, n: int, seed: int) -> n
 
 def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.ndarray, all_mean: np.ndarray,
                     all_var: np.ndarray, x: np.ndarray, y: np.ndarray, w: np.ndarray, mask: np.ndarray,
-                    noise: float, n_candidates: int = 16, seed: int = 0,
+                    noise: float, n_candidates: int = 32, seed: int = 0,
                     candidates_nl: np.ndarray | None = None) -> LatentGaussian:
     """q(z) of a split latent: z_lin exactly conditioned on the via-points for each z_nl candidate.
 
@@ -166,16 +201,16 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
     noise : float
         ν, the via-point standard deviation in normalized joint units (ω scales the precision).
     n_candidates : int
-        Draws from q(z_nl) besides its mean (none when the MLP cannot depend on z_nl: k_l = k or
+        Quasi-random points of q(z_nl) besides its mean (none when the MLP cannot depend on z_nl: k_l = k or
         residual_scale 0).
     seed : int
-        Of the draws (the same request gives the same latent).
+        Of the points' random shift (the same request gives the same latent).
     candidates_nl : array, shape (C, k − k_l), optional
         Candidates to use instead of drawing them (refinement re-conditions with the same ones).
 
     Returns
     -------
-    LatentGaussian with ``linear`` set; ``mean`` = the candidate of the highest weight.
+    LatentGaussian with ``linear`` set; ``mean`` = the candidate of the highest posterior density.
     """
     k_l = net.k_lin
     m, s = context_mean[:k_l], np.sqrt(context_var[:k_l])
@@ -222,11 +257,16 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
     if single:
         weights, best = np.ones(1), 0
     else:
-        top = loglik.max()
-        weights = np.exp(loglik - top)
+        # the posterior ∝ p(via-points | z_nl) q_c(z_nl): the executed mean is the candidate of the highest
+        # posterior density (the first within rounding of it, TIE_TOLERANCE: the same choice on every
+        # machine); the weights are its self-normalized importance weights under the proposal q_all(z_nl),
+        # so the via-points count once, through their exact likelihood, not again through their encodings
+        log_post = loglik - 0.5 * ((candidates_nl - context_mean[k_l:]) ** 2 / context_var[k_l:]).sum(1)
+        top = log_post.max()
+        best = int(np.flatnonzero(log_post >= top - TIE_TOLERANCE * max(1.0, abs(top)))[0])
+        log_w = log_post + 0.5 * ((candidates_nl - all_mean[k_l:]) ** 2 / all_var[k_l:]).sum(1)
+        weights = np.exp(log_w - log_w.max())
         weights /= weights.sum()
-        # the first candidate within rounding of the best (TIE_TOLERANCE): the same choice on every machine
-        best = int(np.flatnonzero(loglik >= top - TIE_TOLERANCE * max(1.0, abs(top)))[0])
     cands = np.concatenate([m + u * s, candidates_nl], 1)  # (C, k)
     # the best candidate's mean at the observed joints of the via-points: offset + H z_lin (joint units)
     via_error = float(np.abs(r[best] - h @ cands[best, :k_l]).max()) if h.shape[0] else 0.0
