@@ -149,7 +149,7 @@ def test_small_data_numbers_are_consistent(tiny_run):
     noise = min((r for r in cv["table"] if r[:4] == structure[:4]), key=lambda r: r[5])[4]
     assert [lin[k] for k in ("decoder_basis", "latent_linear", "basis_cov_reg", "basis_cov_reg_units", "via_noise")] \
         == structure[:4] + [noise]
-    assert resid["kept"] == (resid["relative_difference"] + resid["standard_error"] < 0)
+    assert resid["kept"] == (resid["relative_difference"] + resid["standard_error"] < 0 and resid["via_mean_ok"])
     assert res["residual_used"] == [1.0 if resid["kept"] else 0.0]
     # MAP refinement uses the chosen via-point noise, per joint in rad; ProMP's own choice is recorded too
     assert len(res["map_noise_std"][0]) == 7 and min(res["map_noise_std"][0]) > 0

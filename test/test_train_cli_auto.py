@@ -76,7 +76,7 @@ def test_train_with_no_configuration_selects_records_and_the_model_meets_via_poi
     assert "linear_modes 1" in chosen[0] and "modes_fallback" not in sel
     # the residual: judged on the 3 validation demos, the decision in the file and in the model
     assert res["n_val"] == 3 and set(res["mse_with"]) == {"start", "5 via-points", "start + contexts"}
-    assert res["kept"] == (res["relative_difference"] + res["standard_error"] < 0)
+    assert res["kept"] == (res["relative_difference"] + res["standard_error"] < 0 and res["via_mean_ok"])
     assert cfg.residual_scale == (1.0 if res["kept"] else 0.0) == summary["selected"]["residual_scale"]
     assert ("residual kept" if res["kept"] else "residual dropped") in chosen[0]
     # the loaded model conditions on via-points of a held-out demo and meets them

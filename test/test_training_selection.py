@@ -275,7 +275,7 @@ def test_the_residual_can_be_judged_by_cross_validation_of_the_whole_training():
     res = info["selection"]["residual"]
     # 13 training demos (1 validates), every one held out once by the 2 folds
     assert res["judged_on"] == "held-out demos of a 2-fold cross-validation on the training demos" and res["n_val"] == 13
-    assert res["kept"] == (res["relative_difference"] + res["standard_error"] < 0)
+    assert res["kept"] == (res["relative_difference"] + res["standard_error"] < 0 and res["via_mean_ok"])
     assert net.cfg.residual_scale == (1.0 if res["kept"] else 0.0) == info["train_config"]["residual_scale"]
     with pytest.raises(ValueError, match="residual_folds = 1: expected 0"):
         TrainConfig(residual_folds=1)

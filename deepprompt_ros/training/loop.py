@@ -198,8 +198,9 @@ def selection_line(selection: dict) -> str:
     cv = lin.get("cross_validation")
     how = f"CV MSE {cv['cv_mse']:.3e} rad², " if cv else ""
     r = (f"residual {'kept' if res['kept'] else 'dropped'} (energy score's relative difference "
-         f"{res['relative_difference']:+.3f} ± {res['standard_error']:.3f} on the {res['n_val']} {res['judged_on']})"
-         if "relative_difference" in res else f"residual: {res['reason']}")
+         f"{res['relative_difference']:+.3f} ± {res['standard_error']:.3f}, the via-point means' "
+         f"{res['via_mean_relative_difference']:+.3f} ± {res['via_mean_standard_error']:.3f} on the {res['n_val']} "
+         f"{res['judged_on']})" if "relative_difference" in res else f"residual: {res['reason']}")
     fallback = selection.get("modes_fallback")
     modes = (f"linear_modes {lin['linear_modes']}, its residual dropped: linear_modes 1"
              if fallback else f"linear_modes {lin['linear_modes']}")

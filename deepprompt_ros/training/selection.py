@@ -112,7 +112,11 @@ def judge_residual(net: DeepProMPNet, norm: Normalization, joint_names, val_ds: 
     ``RESIDUAL_DRAWS`` sets of ``RESIDUAL_VIA_POINTS`` random via-points (seeded, averaged into one)
     and — when the data has them — the start point with every context and the images. Each
     conditioning's scores are divided by its mean score without the residual (so each weighs the
-    same), and :func:`keep_residual` decides on the per-demo mean of those relative differences.
+    same), and :func:`keep_residual` decides on the per-demo mean of those relative differences. A
+    residual the score keeps is still dropped when the executed mean at the random via-point sets
+    is worse with it by more than one standard error (per-demo MSE differences relative to the
+    mean MSE without it): a sample score can prefer a wider spread while the trajectory the
+    robot executes gets worse.
 
     Returns (the network to keep: ``net``, or a copy with ``residual_scale`` 0; the record of the
     decision: kept, the score that decided, the mean relative difference and its standard error,
@@ -140,15 +144,22 @@ def judge_residual(net: DeepProMPNet, norm: Normalization, joint_names, val_ds: 
         judged = "validation demos"
     scale = np.maximum(es[1].mean(1, keepdims=True), 1e-300)
     keep, diff, se = keep_residual(es[0] / scale, es[1] / scale)
+    # the executed mean at the via-point sets must not get worse: relative MSE differences per demo
+    via_scale = max(float(mse[1, 1].mean()), 1e-300)
+    via = (mse[0, 1] - mse[1, 1]) / via_scale
+    via_diff, via_se = float(via.mean()), float(via.std(ddof=1) / np.sqrt(via.size)) if via.size >= 2 else 0.0
+    mean_ok = via_diff - via_se <= 0.0
     labels = ["start", f"{RESIDUAL_VIA_POINTS} via-points"] + (["start + contexts"] if extras else [])
-    record = {"kept": keep, "score": f"energy score of {RESIDUAL_SAMPLES} samples (whole trajectory, normalized "
-                                     "joint units)",
+    record = {"kept": keep and mean_ok, "score": f"energy score of {RESIDUAL_SAMPLES} samples (whole trajectory, "
+                                                 "normalized joint units)",
               "relative_difference": diff, "standard_error": se, "n_val": int(es.shape[2]), "judged_on": judged,
+              "via_mean_relative_difference": via_diff, "via_mean_standard_error": via_se,
+              "via_mean_ok": bool(mean_ok),
               "energy_score_with": dict(zip(labels, es[0].mean(1).tolist())),
               "energy_score_without": dict(zip(labels, es[1].mean(1).tolist())),
               "mse_with": dict(zip(labels, mse[0].mean(1).tolist())),
               "mse_without": dict(zip(labels, mse[1].mean(1).tolist()))}
-    if keep:
+    if record["kept"]:
         return net, record
     return without_residual(net), record
 
