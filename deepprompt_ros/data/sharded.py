@@ -85,7 +85,10 @@ class ShardedDataset:
             self.image_shape = None if shape is None else (int(shape[0]), int(shape[1]))
             self.max_contexts = {str(k): int(v) for k, v in index["max_contexts"].items()}
             self.max_images = int(index["max_images"])
-            self.shards = list(index["shards"])
+            self.shards = [{"dir": _shard_dir(s["dir"]), "first": int(s["first"]), "n_demos": int(s["n_demos"]),
+                            "rows": int(s["rows"]), "image_rows": int(s["image_rows"]),
+                            "context_rows": {k: int(s["context_rows"][k]) for k in self.context_dims}}
+                           for s in index["shards"]]
             self._n = int(index["n_demos"])
         except (ValueError, KeyError, TypeError, IndexError) as exc:  # json.JSONDecodeError is a ValueError
             if isinstance(exc, DatasetError):
@@ -304,6 +307,13 @@ class _ShardWriter:
         tmp.write_text(json.dumps(index, indent=1))
         tmp.replace(self.folder / INDEX)  # the index last: a folder without it is no dataset
         return index
+
+
+def _shard_dir(name) -> str:
+    """A shard's folder as the index names it: one plain name inside the dataset's folder."""
+    if not isinstance(name, str) or name in ("", ".", "..") or pathlib.PurePath(name).name != name or "\\" in name:
+        raise ValueError(f"shard dir {name!r} is not a folder name inside the dataset")
+    return name
 
 
 def _dims(demo: Demonstration) -> dict[str, int]:
