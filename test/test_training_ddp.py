@@ -14,6 +14,7 @@ import torch
 from deepprompt_ros.data.synthetic import bimodal_sine
 from deepprompt_ros.model.checkpoint import load_checkpoint
 from deepprompt_ros.primitive.deep_promp import DeepProMP
+from deepprompt_ros.training import distributed
 
 TORCHRUN = [sys.executable, "-m", "torch.distributed.run"]
 CLI = ["-m", "deepprompt_ros.training.cli"]
@@ -121,6 +122,14 @@ def test_partial_torchrun_environment_is_refused(setup):
     proc = subprocess.run([sys.executable, *_args(setup, setup / "x.safetensors")], capture_output=True, text=True,
                           timeout=60, env=env)
     assert proc.returncode == 2 and "environment has RANK but not LOCAL_RANK, WORLD_SIZE" in proc.stderr, proc.stderr
+
+
+def test_torchrun_environment_without_the_rendezvous_address_is_refused():
+    env = {"RANK": "0", "WORLD_SIZE": "2", "LOCAL_RANK": "0", "MASTER_PORT": "29500"}
+    with pytest.raises(ValueError, match="environment has RANK, WORLD_SIZE, LOCAL_RANK but not MASTER_ADDR: expected"):
+        distributed.runtime_from_env("cpu", env)
+    run = distributed.runtime_from_env("cpu", {**env, "MASTER_ADDR": "127.0.0.1"})
+    assert (run.rank, run.world_size, run.backend) == (0, 2, "gloo")
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
