@@ -62,6 +62,8 @@ def test_resume_refuses_missing_and_mismatching_files(tmp_path):
     with pytest.raises(ValueError, match=r"--resume: no resume file .*m\.resume\.pt"):
         train(ds, _cfg(), out_path=out, resume=True, **QUIET)
     train(ds, _cfg(steps=20), out_path=out, **QUIET)
+    with pytest.raises(ValueError, match=r"reached update 20, beyond this run's steps = 10: expected steps >= 20"):
+        train(ds, _cfg(steps=10), out_path=out, resume=True, **QUIET)
     with pytest.raises(ValueError, match=r"does not match this run: configuration keys differ: lr 0\.001 -> 0\.002"):
         train(ds, _cfg(lr=2e-3), out_path=out, resume=True, **QUIET)
     with pytest.raises(ValueError, match="its demonstrations .* differ from this run's"):
