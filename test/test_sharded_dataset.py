@@ -89,6 +89,10 @@ def test_converter_refuses_mixed_joint_names_and_leaves_no_dataset(tmp_path, cap
     assert not (tmp_path / "shards").exists()
     with pytest.raises(DatasetError, match="not empty"):
         write_shards(demos[:2], tmp_path / "folder")
+    (tmp_path / "empty").mkdir()  # an empty folder given as the output stays, empty, when the conversion fails
+    with pytest.raises(DatasetError, match="joint names"):
+        write_shards(demos, tmp_path / "empty", shard_size=2)
+    assert (tmp_path / "empty").is_dir() and not any((tmp_path / "empty").iterdir())
     with pytest.raises(DatasetError, match="'.*nowhere' does not exist; expected a folder of .npz/.csv"):
         convert_folder(tmp_path / "nowhere", tmp_path / "out")
 

@@ -329,14 +329,19 @@ def write_shards(demos: Iterable[Demonstration], folder: str | pathlib.Path,
         raise DatasetError(f"shard_size = {shard_size}: expected at least 1 demonstration per shard")
     if folder.exists() and any(folder.iterdir()):
         raise DatasetError(f"output folder '{folder}' is not empty; expected a new or empty folder")
+    existed = folder.is_dir()
     folder.mkdir(parents=True, exist_ok=True)
     writer = _ShardWriter(folder, shard_size)
     try:
         for demo in demos:
             writer.add(demo)
         writer.close()
-    except BaseException:
-        shutil.rmtree(folder, ignore_errors=True)  # no half dataset left behind
+    except BaseException:  # no half dataset left behind; a folder that was there before stays, empty
+        for part in list(folder.iterdir()) if existed else [folder]:
+            if part.is_dir():
+                shutil.rmtree(part, ignore_errors=True)
+            else:
+                part.unlink(missing_ok=True)
         raise
     return ShardedDataset(folder)
 
