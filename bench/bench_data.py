@@ -6,8 +6,10 @@ Each dataset is generated one demonstration at a time (``data.synthetic.iter_ima
 temporary folder as shards (``data.sharded.write_shards``) and deleted afterwards. Each training runs
 in its own process (``--train DIR``): the same fixed number of updates, ``data_workers`` 2 worker
 processes, 1 torch thread, the validation at the end on the same 100 held-out demos; its peak
-resident memory is the largest ``ru_maxrss`` of its processes (``os.wait4`` on the training process,
-whose worker processes it waits for). Beside it, the same run: the 1 000 demos trained from memory
+resident memory is measured by the training process itself (:func:`peak_rss_mb`: the high-water mark of
+its own address space and the ``ru_maxrss`` of its worker processes, the larger). Not ``ru_maxrss`` of
+the training process seen from here: Linux keeps it across fork and exec, so it would start at this
+process's resident memory. Beside it, the same run: the 1 000 demos trained from memory
 (``train_peak_rss_mb_1k_inmemory``, the folder format's path, which holds every image as floats).
 
 Usage: python bench/bench_data.py [--quick]   (--quick: 200 and 2 000 demos, fewer updates)
@@ -55,26 +57,34 @@ def train_child(folder: str, steps: int, in_memory: bool) -> int:
         cfg = dataclasses.replace(cfg, data_workers=0)
     t0 = time.perf_counter()
     _, _, hist = trainer(ds, cfg, log=lambda s: None)
-    print(json.dumps({"samples_per_s": hist[-1]["samples_per_s"], "wall_s": time.perf_counter() - t0}))
+    wall = time.perf_counter() - t0
+    print(json.dumps({"samples_per_s": hist[-1]["samples_per_s"], "wall_s": wall, "peak_rss_mb": peak_rss_mb()}))
     return 0
 
 
+def peak_rss_mb() -> float:
+    """The peak resident memory (MB) of this process and its ended worker processes: ``VmHWM`` of
+    /proc/self/status (the high-water mark of this address space, which exec started afresh) and
+    ``ru_maxrss`` of ``RUSAGE_CHILDREN`` (the largest of the workers it waited for, each counting the pages
+    it shares with this process), the larger (proc(5), getrusage(2))."""
+    import gc
+    import re
+    import resource
+
+    gc.collect()  # the DataLoader's workers ended and waited for
+    own = int(re.search(r"^VmHWM:\s+(\d+) kB", pathlib.Path("/proc/self/status").read_text(), re.M).group(1))
+    return max(own, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss) / 1024.0  # kB
+
+
 def run_training(folder: pathlib.Path, steps: int, in_memory: bool = False) -> dict:
-    """Train in a child process; its result and peak RSS (MB) over it and its worker processes."""
+    """Train in a child process; its result (samples/s, peak RSS in MB over it and its worker processes)."""
     cmd = [sys.executable, __file__, "--train", str(folder), "--steps", str(steps)]
     cmd += ["--in-memory"] if in_memory else []
     env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
-    with tempfile.TemporaryFile("w+") as out:
-        proc = subprocess.Popen(cmd, stdout=out, env=env)
-        _, status, usage = os.wait4(proc.pid, 0)
-        proc.returncode = os.waitstatus_to_exitcode(status)
-        out.seek(0)
-        text = out.read()
+    proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, env=env)
     if proc.returncode != 0:
-        raise RuntimeError(f"training on {folder} failed (exit {proc.returncode}): {text[-2000:]}")
-    res = json.loads(text.strip().splitlines()[-1])
-    res["peak_rss_mb"] = usage.ru_maxrss / 1024.0  # Linux: kB
-    return res
+        raise RuntimeError(f"training on {folder} failed (exit {proc.returncode}): {proc.stdout[-2000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
 def generate(folder: pathlib.Path, n: int) -> float:

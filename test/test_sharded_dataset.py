@@ -89,6 +89,10 @@ def test_converter_refuses_mixed_joint_names_and_leaves_no_dataset(tmp_path, cap
     assert not (tmp_path / "shards").exists()
     with pytest.raises(DatasetError, match="not empty"):
         write_shards(demos[:2], tmp_path / "folder")
+    (tmp_path / "empty").mkdir()  # an empty folder given as the output stays, empty, when the conversion fails
+    with pytest.raises(DatasetError, match="joint names"):
+        write_shards(demos, tmp_path / "empty", shard_size=2)
+    assert (tmp_path / "empty").is_dir() and not any((tmp_path / "empty").iterdir())
     with pytest.raises(DatasetError, match="'.*nowhere' does not exist; expected a folder of .npz/.csv"):
         convert_folder(tmp_path / "nowhere", tmp_path / "out")
 
@@ -107,6 +111,15 @@ def damage(folder: pathlib.Path, how: str):
     elif how == "index rows":
         index["shards"][1]["rows"] += 3
         (folder / INDEX).write_text(json.dumps(index))
+    elif how == "index shard entry":
+        del index["shards"][1]["first"]
+        (folder / INDEX).write_text(json.dumps(index))
+    elif how == "index shard not a dict":
+        index["shards"][1] = "shard_00001"
+        (folder / INDEX).write_text(json.dumps(index))
+    elif how == "index shard dir outside":
+        index["shards"][1]["dir"] = "../shards/shard_00001"
+        (folder / INDEX).write_text(json.dumps(index))
     elif how == "index json":
         (folder / INDEX).write_text("{not json")
     elif how == "nan in q":
@@ -121,6 +134,9 @@ def damage(folder: pathlib.Path, how: str):
     ("index count", "the shards hold 12 demonstrations; index.json says 13"),
     ("index rows", "shard 'shard_00001' file t.npy has shape"),
     ("index json", "index.json cannot be read"),
+    ("index shard entry", "index.json cannot be read (KeyError('first'))"),
+    ("index shard not a dict", "index.json cannot be read (TypeError("),
+    ("index shard dir outside", "shard dir '../shards/shard_00001' is not a folder name inside the dataset"),
     ("nan in q", "joint positions contain NaN or inf"),
 ])
 def test_train_refuses_a_damaged_sharded_dataset_with_exit_status_2(tmp_path, capsys, how, message):

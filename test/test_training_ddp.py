@@ -3,7 +3,6 @@ to the end, process 0 writes a model that loads and conditions; refused launches
 and say why."""
 import json
 import os
-import socket
 import subprocess
 import sys
 
@@ -14,16 +13,12 @@ import torch
 from deepprompt_ros.data.synthetic import bimodal_sine
 from deepprompt_ros.model.checkpoint import load_checkpoint
 from deepprompt_ros.primitive.deep_promp import DeepProMP
+from deepprompt_ros.training import distributed
+from torchrun_launch import TORCHRUN, free_port, start, stop
+from torchrun_launch import run as launch
 
-TORCHRUN = [sys.executable, "-m", "torch.distributed.run"]
 CLI = ["-m", "deepprompt_ros.training.cli"]
 CONFIG = "steps: 40\nval_every: 20\nhidden: 32\nthreads: 1\nn_points: 30\nbatch_size: 8\ncv_folds: 3\n"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
@@ -64,9 +59,8 @@ def _check_model(out, summary):
 
 def test_torchrun_one_node_two_processes(setup):
     out = setup / "one_node.safetensors"
-    proc = subprocess.run([*TORCHRUN, "--nnodes", "1", "--nproc_per_node", "2", "--master_addr", "127.0.0.1",
-                           "--master_port", str(free_port()), *_args(setup, out)],
-                          capture_output=True, text=True, timeout=120, env=_env())
+    proc = launch([*TORCHRUN, "--nnodes", "1", "--nproc_per_node", "2", "--master_addr", "127.0.0.1",
+                   "--master_port", str(free_port()), *_args(setup, out)], timeout=120, env=_env())
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert ("device cpu, backend gloo, 2 processes (torchrun), 4 of the batch's 8 demonstrations per process"
             in proc.stdout)
@@ -77,11 +71,14 @@ def test_torchrun_one_node_two_processes(setup):
 def test_torchrun_two_nodes_rendezvous_on_localhost(setup):
     out = setup / "two_nodes.safetensors"
     port = free_port()
-    procs = [subprocess.Popen([*TORCHRUN, "--nnodes", "2", "--nproc_per_node", "1", "--node_rank", str(node),
-                               "--rdzv_backend", "c10d", "--rdzv_endpoint", f"127.0.0.1:{port}", "--rdzv_id", "t",
-                               *_args(setup, out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                              env=_env()) for node in (0, 1)]
-    outs = [p.communicate(timeout=120) for p in procs]
+    procs = [start([*TORCHRUN, "--nnodes", "2", "--nproc_per_node", "1", "--node_rank", str(node),
+                    "--rdzv_backend", "c10d", "--rdzv_endpoint", f"127.0.0.1:{port}", "--rdzv_id", "t",
+                    *_args(setup, out)], env=_env()) for node in (0, 1)]
+    try:
+        outs = [p.communicate(timeout=120) for p in procs]
+    finally:
+        for p in procs:  # both nodes' process trees, also when one overran its time
+            stop(p)
     assert [p.returncode for p in procs] == [0, 0], [e[-2000:] for _, e in outs]
     printed = [o for o, _ in outs if o.strip()]
     assert len(printed) == 1, outs  # the node whose process got rank 0
@@ -92,9 +89,8 @@ def test_batch_not_divisible_is_refused(setup):
     (setup / "odd.yaml").write_text(CONFIG.replace("batch_size: 8", "batch_size: 7"))
     message = ("error: batch_size = 7 is not divisible by the 2 processes of this run (WORLD_SIZE): expected a "
                "multiple of 2")
-    proc = subprocess.run([*TORCHRUN, "--nproc_per_node", "2", "--master_port", str(free_port()),
-                           *_args(setup, setup / "odd.safetensors", "odd.yaml")],
-                          capture_output=True, text=True, timeout=120, env=_env())
+    proc = launch([*TORCHRUN, "--nproc_per_node", "2", "--master_port", str(free_port()),
+                   *_args(setup, setup / "odd.safetensors", "odd.yaml")], timeout=120, env=_env())
     assert proc.returncode != 0 and message in proc.stderr and "exitcode  : 2" in proc.stderr, proc.stderr[-3000:]
     # refused before joining the process group: the process alone exits with status 2
     env = {**_env(), "RANK": "0", "WORLD_SIZE": "2", "LOCAL_RANK": "0", "MASTER_ADDR": "127.0.0.1",
@@ -121,6 +117,14 @@ def test_partial_torchrun_environment_is_refused(setup):
     proc = subprocess.run([sys.executable, *_args(setup, setup / "x.safetensors")], capture_output=True, text=True,
                           timeout=60, env=env)
     assert proc.returncode == 2 and "environment has RANK but not LOCAL_RANK, WORLD_SIZE" in proc.stderr, proc.stderr
+
+
+def test_torchrun_environment_without_the_rendezvous_address_is_refused():
+    env = {"RANK": "0", "WORLD_SIZE": "2", "LOCAL_RANK": "0", "MASTER_PORT": "29500"}
+    with pytest.raises(ValueError, match="environment has RANK, WORLD_SIZE, LOCAL_RANK but not MASTER_ADDR: expected"):
+        distributed.runtime_from_env("cpu", env)
+    run = distributed.runtime_from_env("cpu", {**env, "MASTER_ADDR": "127.0.0.1"})
+    assert (run.rank, run.world_size, run.backend) == (0, 2, "gloo")
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")

@@ -1,24 +1,17 @@
 """Two torchrun processes train as one: DDP keeps their weights identical, and they reach the
 validation error of one process with the same seed and total batch within the run-to-run noise."""
 import pathlib
-import socket
-import subprocess
 import sys
 
 import pytest
 import torch
 
+import torchrun_launch
 from deepprompt_ros.data.synthetic import bimodal_sine
 
 WORKER = str(pathlib.Path(__file__).resolve().parent / "ddp_worker.py")
-TORCHRUN = [sys.executable, "-m", "torch.distributed.run", "--nnodes", "1", "--nproc_per_node", "2",
+TORCHRUN = [*torchrun_launch.TORCHRUN, "--nnodes", "1", "--nproc_per_node", "2",
             "--master_addr", "127.0.0.1"]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
@@ -30,9 +23,8 @@ def data(tmp_path_factory):
 
 def _worker(data, outdir, seed, processes):
     outdir.mkdir()
-    head = [*TORCHRUN, "--master_port", str(free_port())] if processes == 2 else [sys.executable]
-    proc = subprocess.run([*head, WORKER, str(data), str(outdir), str(seed), "400", "1"], capture_output=True,
-                          text=True, timeout=120)
+    head = [*TORCHRUN, "--master_port", str(torchrun_launch.free_port())] if processes == 2 else [sys.executable]
+    proc = torchrun_launch.run([*head, WORKER, str(data), str(outdir), str(seed), "400", "1"], timeout=120)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return [torch.load(outdir / f"rank{r}.pt", weights_only=True) for r in range(processes)]
 

@@ -1,23 +1,15 @@
 """A two-process torchrun training resumed from its resume file (every process's generators restored)
 ends bitwise where an uninterrupted one does."""
-import socket
-import subprocess
-import sys
 
 import pytest
 import torch
 
+import torchrun_launch
 from deepprompt_ros.data.synthetic import bimodal_sine
 from deepprompt_ros.model.checkpoint import load_checkpoint
 
-TORCHRUN = [sys.executable, "-m", "torch.distributed.run", "--nnodes", "1", "--nproc_per_node", "2",
+TORCHRUN = [*torchrun_launch.TORCHRUN, "--nnodes", "1", "--nproc_per_node", "2",
             "--master_addr", "127.0.0.1"]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture()
@@ -32,9 +24,10 @@ def test_two_process_run_resumes_to_the_uninterrupted_result(data, tmp_path):
                                        "auto_select: false\nbatch_size: 8\n")
 
     def run(out, steps, *extra):
-        proc = subprocess.run([*TORCHRUN, "--master_port", str(free_port()), "-m", "deepprompt_ros.training.cli",
-                               "--data", str(data), "--config", str(tmp_path / "cfg.yaml"), "--out", str(out),
-                               "--steps", str(steps), *extra], capture_output=True, text=True, timeout=120)
+        proc = torchrun_launch.run([*TORCHRUN, "--master_port", str(torchrun_launch.free_port()), "-m",
+                                    "deepprompt_ros.training.cli", "--data", str(data), "--config",
+                                    str(tmp_path / "cfg.yaml"), "--out", str(out), "--steps", str(steps), *extra],
+                                   timeout=120)
         assert proc.returncode == 0, proc.stderr[-3000:]
         return proc.stdout
 

@@ -1,12 +1,11 @@
 """A sharded dataset trains data-parallel under torchrun too: each process reads its share of every batch
 (in the training process or in a DataLoader worker, the same model), and two processes on the shards give
 the model two processes give on the same demonstrations in memory; --resume is refused for shards."""
-import socket
-import subprocess
 import sys
 
 import pytest
 
+import torchrun_launch
 from deepprompt_ros.data.demo_dataset import DemoDataset
 from deepprompt_ros.data.sharded import write_shards
 from deepprompt_ros.data.synthetic import iter_image_reach
@@ -15,12 +14,6 @@ from deepprompt_ros.model.checkpoint import load_checkpoint
 #: a fixed linear part (PCA-initialized) and a small network, as test_sharded_training's
 CONFIG = ("steps: 20\nval_every: 10\nthreads: 1\nbatch_size: 8\nn_points: 40\nauto_select: false\ndecoder_basis: 10\n"
           "basis_init: pca\nbasis_lr_scale: 0.0\nlatent_linear: 8\nlatent_dim: 12\nhidden: 32\nn_val: 6\n")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
@@ -35,11 +28,11 @@ def root(tmp_path_factory):
 
 
 def _train(root, data, out, config="cfg.yaml", *extra, processes=2):
-    head = ([sys.executable, "-m", "torch.distributed.run", "--nnodes", "1", "--nproc_per_node", str(processes),
-             "--master_addr", "127.0.0.1", "--master_port", str(free_port())] if processes > 1 else [sys.executable])
-    return subprocess.run([*head, "-m", "deepprompt_ros.training.cli", "--data", str(root / data), "--config",
-                           str(root / config), "--out", str(root / out), *extra],
-                          capture_output=True, text=True, timeout=120)
+    head = ([*torchrun_launch.TORCHRUN, "--nnodes", "1", "--nproc_per_node", str(processes),
+             "--master_addr", "127.0.0.1", "--master_port", str(torchrun_launch.free_port())] if processes > 1
+            else [sys.executable])
+    return torchrun_launch.run([*head, "-m", "deepprompt_ros.training.cli", "--data", str(root / data), "--config",
+                                str(root / config), "--out", str(root / out), *extra], timeout=120)
 
 
 def test_two_processes_on_shards_train_the_in_memory_model(root):

@@ -62,6 +62,8 @@ def test_resume_refuses_missing_and_mismatching_files(tmp_path):
     with pytest.raises(ValueError, match=r"--resume: no resume file .*m\.resume\.pt"):
         train(ds, _cfg(), out_path=out, resume=True, **QUIET)
     train(ds, _cfg(steps=20), out_path=out, **QUIET)
+    with pytest.raises(ValueError, match=r"reached update 20, beyond this run's steps = 10: expected steps >= 20"):
+        train(ds, _cfg(steps=10), out_path=out, resume=True, **QUIET)
     with pytest.raises(ValueError, match=r"does not match this run: configuration keys differ: lr 0\.001 -> 0\.002"):
         train(ds, _cfg(lr=2e-3), out_path=out, resume=True, **QUIET)
     with pytest.raises(ValueError, match="its demonstrations .* differ from this run's"):
@@ -118,3 +120,27 @@ def test_cli_resume_errors_exit_2(tmp_path):
     cmd[cmd.index("--config") + 1] = str(tmp_path / "other.yaml")
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "configuration keys differ: hidden 32 -> 16" in proc.stderr, proc.stderr
+
+
+def test_an_entry_written_keeps_its_states_when_the_training_goes_on(tmp_path):
+    """The file's entries are copies: the weights and optimizer states a fit recorded stay as they were when the
+    network is changed afterwards (the best weights loaded at the fit's end), when the next fit's save rewrites
+    the file."""
+    from deepprompt_ros.training.distributed import SINGLE
+    from deepprompt_ros.training.resume import ResumeFile
+    net = torch.nn.Linear(3, 2)
+    opt = torch.optim.Adam(net.parameters())
+    net(torch.ones(1, 3)).sum().backward()
+    opt.step()
+    last = {k: t.clone() for k, t in net.state_dict().items()}
+    gen = torch.Generator().manual_seed(0)
+    ckpt = ResumeFile(tmp_path / "r.resume.pt", SINGLE, load=False)
+    ckpt.save(0, {"step": 1, "net": net.state_dict(), "optimizer": opt.state_dict()}, [gen])
+    with torch.no_grad():
+        net.weight.zero_()
+        opt.state[net.weight]["exp_avg"].zero_()
+    ckpt.save(1, {"step": 1, "net": net.state_dict(), "optimizer": opt.state_dict()}, [gen])
+    fits = torch.load(tmp_path / "r.resume.pt", weights_only=True)["fits"]
+    _same(fits[0]["net"], last)
+    assert fits[0]["optimizer"]["state"][0]["exp_avg"].abs().min() > 0
+    assert torch.equal(fits[1]["net"]["weight"], torch.zeros(2, 3))

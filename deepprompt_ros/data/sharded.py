@@ -85,7 +85,10 @@ class ShardedDataset:
             self.image_shape = None if shape is None else (int(shape[0]), int(shape[1]))
             self.max_contexts = {str(k): int(v) for k, v in index["max_contexts"].items()}
             self.max_images = int(index["max_images"])
-            self.shards = list(index["shards"])
+            self.shards = [{"dir": _shard_dir(s["dir"]), "first": int(s["first"]), "n_demos": int(s["n_demos"]),
+                            "rows": int(s["rows"]), "image_rows": int(s["image_rows"]),
+                            "context_rows": {k: int(s["context_rows"][k]) for k in self.context_dims}}
+                           for s in index["shards"]]
             self._n = int(index["n_demos"])
         except (ValueError, KeyError, TypeError, IndexError) as exc:  # json.JSONDecodeError is a ValueError
             if isinstance(exc, DatasetError):
@@ -306,6 +309,13 @@ class _ShardWriter:
         return index
 
 
+def _shard_dir(name) -> str:
+    """A shard's folder as the index names it: one plain name inside the dataset's folder."""
+    if not isinstance(name, str) or name in ("", ".", "..") or pathlib.PurePath(name).name != name or "\\" in name:
+        raise ValueError(f"shard dir {name!r} is not a folder name inside the dataset")
+    return name
+
+
 def _dims(demo: Demonstration) -> dict[str, int]:
     return {k: int(v.shape[1]) for k, v in sorted(demo.contexts.items())}
 
@@ -319,14 +329,19 @@ def write_shards(demos: Iterable[Demonstration], folder: str | pathlib.Path,
         raise DatasetError(f"shard_size = {shard_size}: expected at least 1 demonstration per shard")
     if folder.exists() and any(folder.iterdir()):
         raise DatasetError(f"output folder '{folder}' is not empty; expected a new or empty folder")
+    existed = folder.is_dir()
     folder.mkdir(parents=True, exist_ok=True)
     writer = _ShardWriter(folder, shard_size)
     try:
         for demo in demos:
             writer.add(demo)
         writer.close()
-    except BaseException:
-        shutil.rmtree(folder, ignore_errors=True)  # no half dataset left behind
+    except BaseException:  # no half dataset left behind; a folder that was there before stays, empty
+        for part in list(folder.iterdir()) if existed else [folder]:
+            if part.is_dir():
+                shutil.rmtree(part, ignore_errors=True)
+            else:
+                part.unlink(missing_ok=True)
         raise
     return ShardedDataset(folder)
 

@@ -49,8 +49,8 @@ __all__ = ["main"]
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="train", description="Train a DeepProMP on demonstrations.")
     src = ap.add_mutually_exclusive_group(required=True)
-    src.add_argument("--data", help="dataset folder of .npz/.csv demonstrations (see deepprompt_ros.data.demo_dataset), "
-                     "or a sharded dataset (a folder with index.json, deepprompt_ros.data.sharded), read lazily")
+    src.add_argument("--data", help="dataset folder of .npz/.csv demonstrations (see deepprompt_ros.data.demo_dataset)"
+                     ", or a sharded dataset (a folder with index.json, deepprompt_ros.data.sharded), read lazily")
     src.add_argument("--builtin", help="built-in generated dataset: bimodal_sine | rhythmic_shake | wam_shake | "
                      "gen3_lite_reach, or a PyBullet task (deepprompt_ros.sim.tasks; full sets take minutes to "
                      "generate): "

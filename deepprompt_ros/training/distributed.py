@@ -33,6 +33,8 @@ __all__ = ["DEVICES", "Runtime", "SINGLE", "resolve_device", "runtime_from_env",
 DEVICES = ("auto", "cpu", "cuda")
 #: the variables torchrun sets in every process it starts
 _TORCHRUN_ENV = ("RANK", "WORLD_SIZE", "LOCAL_RANK")
+#: and those of the env:// rendezvous
+_RENDEZVOUS_ENV = ("MASTER_ADDR", "MASTER_PORT")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -174,6 +176,11 @@ def runtime_from_env(device: str, env=None) -> Runtime:
         raise ValueError(f"RANK, WORLD_SIZE, LOCAL_RANK = {values}: expected integers") from None
     if not 0 <= rank < world:
         raise ValueError(f"RANK = {rank}, WORLD_SIZE = {world}: expected 0 <= RANK < WORLD_SIZE")
+    rendezvous = [k for k in _RENDEZVOUS_ENV if not env.get(k)]
+    if rendezvous:
+        raise ValueError(f"environment has {', '.join(_TORCHRUN_ENV)} but not {', '.join(rendezvous)}: expected the "
+                         "address and port of process 0 too (torchrun sets them), or none of RANK, WORLD_SIZE, "
+                         "LOCAL_RANK (one process)")
     dev = resolve_device(device, local)
     return Runtime(rank, world, local, dev, "nccl" if dev.type == "cuda" else "gloo")
 

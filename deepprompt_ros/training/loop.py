@@ -126,6 +126,9 @@ def _fit(train_ds: DemoDataset, val_ds: DemoDataset, cfg: TrainConfig, log, run:
     key = fit_key(cfg, data_digest(data, val), run.world_size) if ckpt else None
     entry = ckpt.restore(fit_no, key) if ckpt else None
     if entry is not None:  # continue after the update the resume file reached
+        if entry["step"] > cfg.steps:
+            raise ValueError(f"--resume: '{ckpt.path}' reached update {entry['step']}, beyond this run's steps = "
+                             f"{cfg.steps}: expected steps >= {entry['step']}")
         net.load_state_dict(entry["net"])
         opt.load_state_dict(entry["optimizer"])
         for g, state in zip((gen, draws), entry["generators"][run.rank]):
@@ -137,7 +140,7 @@ def _fit(train_ds: DemoDataset, val_ds: DemoDataset, cfg: TrainConfig, log, run:
     t0 = time.perf_counter() - (entry["elapsed_s"] if entry else 0.0)
     n_train = data.y.shape[0]
     for step in range(done + 1, cfg.steps + 1):
-        idx = run.share(torch.randint(0, n_train, (cfg.batch_size,), generator=gen))  # (batch_size / processes,)
+        idx = run.share(torch.randint(0, n_train, (cfg.batch_size,), generator=gen, device=gen.device))  # (B / procs,)
         beta = cfg.beta * min(1.0, step / max(1, cfg.kl_anneal_steps))  # KL annealing
         loss, nll, kl, cons = model(cfg, data, idx, draws, beta, modes)
         opt.zero_grad(set_to_none=True)

@@ -17,6 +17,7 @@ checkpoint.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import hashlib
 import os
@@ -119,12 +120,14 @@ class ResumeFile:
         return entry
 
     def save(self, fit_no: int, entry: dict, generators: list) -> None:
-        """Record fit ``fit_no``'s ``entry`` (process 0's states) with every process's ``generators``
+        """Record a copy of fit ``fit_no``'s ``entry`` (process 0's states) with every process's ``generators``
         states and write the file (a collective: every process calls it at the same update)."""
         states = self.run.gather([g.get_state() for g in generators])
         if not self.run.is_main:
             return
-        entry = dict(entry, generators=states)
+        # a copy: the entry's tensors are the live network's and optimizer's, which change after it is recorded
+        # (the best weights loaded at the fit's end) while a later fit's save writes this entry again
+        entry = copy.deepcopy(dict(entry, generators=states))
         del self.fits[fit_no:]
         self.fits.append(entry)
         tmp = self.path.with_name(self.path.name + ".tmp")
