@@ -72,7 +72,9 @@ def main(argv=None) -> int:
         return 2
     distributed.init(run)
     try:
-        return _train(args, cfg, run)
+        status = _train(args, cfg, run)
+        distributed.finish(run)
+        return status
     finally:
         distributed.shutdown(run)
 

@@ -26,8 +26,8 @@ import torch.distributed as dist
 
 from deepprompt_ros.model.network import DeepProMPNet
 
-__all__ = ["DEVICES", "Runtime", "SINGLE", "resolve_device", "runtime_from_env", "init", "shutdown", "LossModule",
-           "wrap", "judge_on_main"]
+__all__ = ["DEVICES", "Runtime", "SINGLE", "resolve_device", "runtime_from_env", "init", "finish", "shutdown",
+           "LossModule", "wrap", "judge_on_main"]
 
 #: values of ``TrainConfig.device``
 DEVICES = ("auto", "cpu", "cuda")
@@ -192,6 +192,13 @@ def init(run: Runtime) -> None:
     if run.device.type == "cuda":
         torch.cuda.set_device(run.device)
     dist.init_process_group(backend=run.backend, rank=run.rank, world_size=run.world_size)
+
+
+def finish(run: Runtime) -> None:
+    """Wait until every process has ended its training (a barrier): no process leaves the group, and
+    no node's agent closes the rendezvous store, while another still talks to it."""
+    if run.distributed and dist.is_initialized():
+        dist.barrier()
 
 
 def shutdown(run: Runtime) -> None:
