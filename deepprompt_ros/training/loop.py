@@ -26,7 +26,7 @@ from deepprompt_ros.training.resume import ResumeFile, data_digest, fit_key, res
 from deepprompt_ros.training.selection import judge_residual, nonlinear_dims, select_linear_part
 from deepprompt_ros.training.tensors import fit_normalization, to_tensors
 
-__all__ = ["train", "new_network", "new_optimizer"]
+__all__ = ["train", "new_network", "new_optimizer", "record_validation", "write_model", "selection_line"]
 
 
 def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: DemoDataset | None = None,
@@ -89,17 +89,25 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
     if info is not None:
         info.update(train_config=dataclasses.asdict(cfg), selection=selection)
     if out_path is not None and run.is_main:
-        meta = {
-            "train_config": dataclasses.asdict(cfg),
-            "selection": selection,
-            "provenance": {"dataset": ds.source, "n_train": len(train_ds), "n_val": len(val_ds),
-                           "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-                           "deepprompt_ros": __version__, "torch": torch.__version__,
-                           "device": str(run.device), "backend": run.backend, "world_size": run.world_size},
-            "metrics": {"best_val_mse_rad2": best, "wall_time_s": time.perf_counter() - t0},
-        }
-        save_checkpoint(out_path, net, norm, ds.joint_names, meta)
+        write_model(out_path, net, norm, ds, cfg, selection, run, (len(train_ds), len(val_ds)), best, t0)
     return net, norm, history
+
+
+def write_model(out_path, net: DeepProMPNet, norm, ds, cfg: TrainConfig, selection: dict, run: Runtime,
+                sizes: tuple[int, int], best: float, t0: float) -> None:
+    """The checkpoint of a finished training with its metadata: the configuration trained, the
+    selection's record, the provenance (data set, ``sizes`` = (training, validation) demos, versions,
+    device and processes) and the metrics (best validation MSE, wall time since ``t0``)."""
+    meta = {
+        "train_config": dataclasses.asdict(cfg),
+        "selection": selection,
+        "provenance": {"dataset": ds.source, "n_train": sizes[0], "n_val": sizes[1],
+                       "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                       "deepprompt_ros": __version__, "torch": torch.__version__,
+                       "device": str(run.device), "backend": run.backend, "world_size": run.world_size},
+        "metrics": {"best_val_mse_rad2": best, "wall_time_s": time.perf_counter() - t0},
+    }
+    save_checkpoint(out_path, net, norm, ds.joint_names, meta)
 
 
 def _fit(train_ds: DemoDataset, val_ds: DemoDataset, cfg: TrainConfig, log, run: Runtime = SINGLE,
@@ -149,15 +157,8 @@ def _fit(train_ds: DemoDataset, val_ds: DemoDataset, cfg: TrainConfig, log, run:
         if run.is_main and (step % cfg.val_every == 0 or step == cfg.steps):
             with run.device:  # the tensors the validation creates on the run's device
                 v = validation_mse(net, cfg, val, norm)
-            elapsed = time.perf_counter() - t0
-            rec = {"step": step, "loss": loss.item(), "nll": nll, "kl": kl, "consistency": cons, "beta": beta, "val": v,
-                   "samples_per_s": step * cfg.batch_size / elapsed}
-            history.append(rec)
-            mark = ""
-            if v["mean"] < best:
-                best, best_state, mark = v["mean"], {k: t.clone() for k, t in net.state_dict().items()}, " *best"
-            log(f"step {step:6d}/{cfg.steps}  loss {loss.item():10.3f}  nll {nll:9.3f}  kl {kl:8.3f}  "
-                f"val_mse {v['mean']:.3e} rad²  {rec['samples_per_s']:.0f} traj/s{mark}")
+            best, best_state = record_validation(step, (loss.item(), nll, kl, cons, beta), v, cfg, t0, net, history,
+                                                 best, best_state, log)
         if ckpt and (step % every == 0 or step == cfg.steps):
             ckpt.save(fit_no, {"key": key, "step": step, "net": net.state_dict(), "optimizer": opt.state_dict(),
                                "history": history, "best": best, "best_state": best_state,
@@ -167,6 +168,23 @@ def _fit(train_ds: DemoDataset, val_ds: DemoDataset, cfg: TrainConfig, log, run:
         net.load_state_dict(best_state)
     net.eval()
     return net, norm, history, best
+
+
+def record_validation(step: int, losses: tuple, v: dict, cfg: TrainConfig, t0: float, net: DeepProMPNet,
+                      history: list, best: float, best_state, log):
+    """One validation of the training loop: its record appended to ``history`` (``losses`` = loss, nll,
+    kl, consistency, β of the update; ``v`` the validation MSE; samples/s since ``t0``), the weights kept
+    when they are the best so far, one log line. Returns (best, best_state)."""
+    loss, nll, kl, cons, beta = losses
+    rec = {"step": step, "loss": loss, "nll": nll, "kl": kl, "consistency": cons, "beta": beta, "val": v,
+           "samples_per_s": step * cfg.batch_size / (time.perf_counter() - t0)}
+    history.append(rec)
+    mark = ""
+    if v["mean"] < best:
+        best, best_state, mark = v["mean"], {k: t.clone() for k, t in net.state_dict().items()}, " *best"
+    log(f"step {step:6d}/{cfg.steps}  loss {loss:10.3f}  nll {nll:9.3f}  kl {kl:8.3f}  "
+        f"val_mse {v['mean']:.3e} rad²  {rec['samples_per_s']:.0f} traj/s{mark}")
+    return best, best_state
 
 
 def new_network(ds, cfg: TrainConfig) -> DeepProMPNet:

@@ -26,7 +26,6 @@ are the same; test/test_sharded_training.py measures the difference).
 from __future__ import annotations
 
 import dataclasses
-import datetime
 import math
 import time
 from typing import Sequence
@@ -34,17 +33,17 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from deepprompt_ros import __version__
 from deepprompt_ros.data.demo_dataset import DemoDataset
 from deepprompt_ros.data.demonstration import DatasetError, Demonstration
 from deepprompt_ros.data.sharded import ShardedDataset
 from deepprompt_ros.model.aggregation import bayesian_aggregate
-from deepprompt_ros.model.checkpoint import Normalization, save_checkpoint
+from deepprompt_ros.model.checkpoint import Normalization
 from deepprompt_ros.model.network import DeepProMPNet
 from deepprompt_ros.training.basis import ModeOffsets, basis_weights, init_basis_pca
 from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.distributed import SINGLE, Runtime, judge_on_main, wrap
-from deepprompt_ros.training.loop import new_network, new_optimizer, selection_line, train
+from deepprompt_ros.training.loop import (new_network, new_optimizer, record_validation, selection_line, train,
+                                          write_model)
 from deepprompt_ros.training.objectives import encode_all, loss_fn
 from deepprompt_ros.training.selection import judge_residual, nonlinear_dims, select_linear_part
 from deepprompt_ros.training.tensors import TensorData, to_tensors
@@ -254,16 +253,7 @@ def train_sharded(ds: ShardedDataset, cfg: TrainConfig, out_path=None, log=print
     if info is not None:
         info.update(train_config=dataclasses.asdict(cfg), selection=selection)
     if out_path is not None and run.is_main:
-        meta = {
-            "train_config": dataclasses.asdict(cfg),
-            "selection": selection,
-            "provenance": {"dataset": ds.source, "n_train": len(train_ids), "n_val": len(held_ids),
-                           "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-                           "deepprompt_ros": __version__, "torch": torch.__version__,
-                           "device": str(run.device), "backend": run.backend, "world_size": run.world_size},
-            "metrics": {"best_val_mse_rad2": best, "wall_time_s": time.perf_counter() - t0},
-        }
-        save_checkpoint(out_path, net, norm, ds.joint_names, meta)
+        write_model(out_path, net, norm, ds, cfg, selection, run, (len(train_ids), len(held_ids)), best, t0)
     return net, norm, history
 
 
@@ -317,15 +307,8 @@ def _fit(ds: ShardedDataset, train_ids: np.ndarray, val_ids: np.ndarray, select_
         opt.step()
         if run.is_main and (step % cfg.val_every == 0 or step == cfg.steps):
             v = chunked_validation_mse(net, cfg, val, norm)
-            elapsed = time.perf_counter() - t0
-            rec = {"step": step, "loss": loss.item(), "nll": nll, "kl": kl, "consistency": cons, "beta": beta, "val": v,
-                   "samples_per_s": step * cfg.batch_size / elapsed}
-            history.append(rec)
-            mark = ""
-            if v["mean"] < best:
-                best, best_state, mark = v["mean"], {k: t.clone() for k, t in net.state_dict().items()}, " *best"
-            log(f"step {step:6d}/{cfg.steps}  loss {loss.item():10.3f}  nll {nll:9.3f}  kl {kl:8.3f}  "
-                f"val_mse {v['mean']:.3e} rad²  {rec['samples_per_s']:.0f} traj/s{mark}")
+            best, best_state = record_validation(step, (loss.item(), nll, kl, cons, beta), v, cfg, t0, net, history,
+                                                 best, best_state, log)
     del loader  # ends the worker processes
     if run.is_main:
         net.load_state_dict(best_state)
