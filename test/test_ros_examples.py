@@ -43,7 +43,8 @@ rclpy.init()
 node = rclpy.create_node("readme_snippet")
 executor = MultiThreadedExecutor()
 executor.add_node(node)
-threading.Thread(target=executor.spin, daemon=True).start()
+spinner = threading.Thread(target=executor.spin, daemon=True)
+spinner.start()
 preview_client = node.create_client(Condition, "/primitive_server/condition")
 assert preview_client.wait_for_service(timeout_sec=30.0)
 p = preview_client.call(Condition.Request(primitive="reach", preview_points=101,
@@ -62,6 +63,7 @@ if result is not None:
     res = result.result().result
     print(f"execute success={{res.success}} code={{res.code.value}} '{{res.message}}'")
 executor.shutdown()
+spinner.join(timeout=10.0)  # the spinning thread out of the executor's wait before the interpreter exits
 node.destroy_node()
 rclpy.try_shutdown()
 '''

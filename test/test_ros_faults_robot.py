@@ -424,8 +424,11 @@ def test_a_goal_right_after_another_continues_from_the_last_command_while_the_ro
         lag = float(np.abs(robot - q[k]).max())
         # far more than one period at the velocity limit: a start from the measured state would jump
         assert lag > 10 * LIMITS.max_velocity.max() * DT, f"the robot lagged by {lag:.4f} rad only"
-        np.testing.assert_array_equal(q[k + 1], q[k])  # the new stream starts at the last command, at rest
-        assert np.all(qd[k] == 0.0) and np.all(qd[k + 1] == 0.0)
+        # the new stream starts at the last command (within 1e-6 rad: the last ticks of the first goal's landing
+        # move by up to ~4e-7 rad, and a command of them may be missing from this client's record), at rest, not
+        # at the robot, which lags by more than 10 periods at the velocity limit
+        assert np.all(np.abs(q[k + 1] - q[k]) < 1e-6), q[k + 1] - q[k]
+        assert np.all(np.abs(qd[k]) < 1e-3) and np.all(qd[k + 1] == 0.0), (qd[k], qd[k + 1])
         print(f"restart {gap * 1e3:.0f} ms after the last command, the robot {lag:.3f} rad behind it")
     finally:
         js.close()
