@@ -441,3 +441,18 @@ def test_the_server_refuses_an_overflowing_request_and_blends_split_latents(spli
     b = core.condition(ConditionRequest("split", [ViaPointIn(0.8, Y[2, 40], np.zeros(0, bool))]))
     blended = core.blend(BlendRequest(a.handle, b.handle, preview_points=20))  # on the diagonal summaries (Eq. 4)
     assert np.all(np.isfinite(blended.preview.mean)) and np.all(blended.preview.std > 0)
+
+
+def test_the_candidates_of_z_nl_cover_the_normal_distribution_evenly_and_reproducibly():
+    from deepprompt_ros.primitive.linear_conditioning import normal_points
+    p = normal_points(32, 3, 0)
+    np.testing.assert_array_equal(p, normal_points(32, 3, 0))  # the same request, the same candidates
+    assert not np.allclose(p, normal_points(32, 3, 1))  # the seed shifts them
+    # the 32 points of a coordinate fall in at least 31 of the 32 equal-probability bins (the radical inverse in
+    # base 2 of 1 … 31 visits k/32, that of 32 is 1/64: a shift modulo 1 may put it in the bin of another);
+    # 32 independent draws fill about 20 of them
+    from statistics import NormalDist
+    cdf = np.vectorize(NormalDist().cdf)
+    for seed in range(5):
+        assert len(set(np.floor(cdf(normal_points(32, 3, seed)[:, 0]) * 32).astype(int))) >= 31
+    assert len(set(np.floor(cdf(np.random.default_rng(0).standard_normal(32)) * 32).astype(int))) < 26
