@@ -46,7 +46,7 @@ from deepprompt_ros.training.loop import (new_network, new_optimizer, record_val
                                           write_model)
 from deepprompt_ros.training.objectives import encode_all, loss_fn
 from deepprompt_ros.training.selection import judge_residual, nonlinear_dims, select_linear_part
-from deepprompt_ros.training.tensors import TensorData, to_tensors
+from deepprompt_ros.training.tensors import TensorData, demos_to_tensors, to_tensors
 
 __all__ = ["train_sharded", "streaming_normalization", "ShardBatches", "chunked_validation_mse", "bounded_subset",
            "mode_labels", "VAL_CHUNK"]
@@ -114,27 +114,9 @@ class ShardBatches(torch.utils.data.Dataset):
     def tensors(self, demos: list[Demonstration]) -> TensorData:
         """``demos`` as the tensors of :func:`~deepprompt_ros.training.tensors.to_tensors` (padded to the
         dataset's largest counts)."""
-        ds, norm, b = self.ds, self.norm, len(demos)
-        y = np.stack([d.resampled(self.n_points) for d in demos])
-        y = (y - norm.y_mean) / norm.y_std
-        ctx, ctx_mask = {}, {}
-        for name, dim in ds.context_dims.items():
-            arr, mask = np.zeros((b, ds.max_contexts[name], dim)), np.zeros((b, ds.max_contexts[name]))
-            for i, d in enumerate(demos):
-                c = d.contexts[name]
-                arr[i, : len(c)] = (c - norm.ctx_mean[name]) / norm.ctx_std[name]
-                mask[i, : len(c)] = 1.0
-            ctx[name] = torch.tensor(arr, dtype=torch.float32)
-            ctx_mask[name] = torch.tensor(mask, dtype=torch.float32)
-        images = image_mask = None
-        if ds.image_shape is not None:
-            h, w = ds.image_shape
-            images, image_mask = torch.zeros(b, ds.max_images, 3, h, w), torch.zeros(b, ds.max_images)
-            for i, d in enumerate(demos):
-                images[i, : len(d.images)] = torch.from_numpy(d.images).permute(0, 3, 1, 2).float() / 255.0
-                image_mask[i, : len(d.images)] = 1.0
-        return TensorData(torch.tensor(y, dtype=torch.float32), torch.linspace(0, 1, self.n_points), ctx, ctx_mask,
-                          images, image_mask)
+        ds = self.ds
+        return demos_to_tensors(demos, self.norm, self.n_points, ds.context_dims, ds.image_shape, ds.max_contexts,
+                                ds.max_images)
 
 
 class _BatchDraws(torch.utils.data.Sampler):
