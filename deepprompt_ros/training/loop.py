@@ -26,7 +26,8 @@ from deepprompt_ros.training.resume import ResumeFile, data_digest, fit_key, res
 from deepprompt_ros.training.selection import judge_residual, nonlinear_dims, select_linear_part
 from deepprompt_ros.training.tensors import fit_normalization, to_tensors
 
-__all__ = ["train", "new_network", "new_optimizer", "record_validation", "write_model", "selection_line"]
+__all__ = ["train", "new_network", "new_optimizer", "record_validation", "write_model", "selection_line",
+           "judge_with_fallback", "in_memory_refit"]
 
 
 def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: DemoDataset | None = None,
@@ -69,28 +70,47 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
     if cfg.auto_select:  # numpy on process 0, its choice shared: every process trains the same configuration
         cfg, selection["linear_part"] = run.broadcast(
             select_linear_part(train_ds, cfg, len(ds.joint_names)) if run.is_main else None)
-    net, norm, history, best = _fit(train_ds, val_ds, cfg, log, run, ckpt, fit_no=0)
+    fitted = _fit(train_ds, val_ds, cfg, log, run, ckpt, fit_no=0)
     if cfg.auto_select:
-        def refit(fold_ds):  # the residual's cross-validation trains exactly as here, the linear part as chosen
-            fold_net, fold_norm, _ = train(fold_ds, dataclasses.replace(cfg, auto_select=False), log=lambda s: None)
-            return fold_net, fold_norm
-
-        net, selection["residual"] = judge_on_main(run, net, lambda: judge_residual(
-            net, norm, ds.joint_names, val_ds, cfg, train_ds, refit))
-        if not selection["residual"]["kept"] and cfg.linear_modes > 1:
-            log(f"residual dropped beside the linear part of {cfg.linear_modes} modes: training again with one")
-            selection["modes_fallback"] = {"linear_modes": cfg.linear_modes, "residual": selection.pop("residual")}
-            cfg = dataclasses.replace(cfg, linear_modes=1, latent_dim=cfg.latent_linear + nonlinear_dims(cfg, 1))
-            net, norm, history, best = _fit(train_ds, val_ds, cfg, log, run, ckpt, fit_no=1)
-            net, selection["residual"] = judge_on_main(run, net, lambda: judge_residual(
-                net, norm, ds.joint_names, val_ds, cfg, train_ds, refit))
-        cfg = dataclasses.replace(cfg, residual_scale=net.cfg.residual_scale)
-        log(selection_line(selection))
+        cfg, fitted = judge_with_fallback(
+            cfg, fitted, selection, log, lambda c: _fit(train_ds, val_ds, c, log, run, ckpt, fit_no=1),
+            lambda n, nm, c: judge_on_main(run, n, lambda: judge_residual(
+                n, nm, ds.joint_names, val_ds, c, train_ds, in_memory_refit(c))))
+    net, norm, history, best = fitted
     if info is not None:
         info.update(train_config=dataclasses.asdict(cfg), selection=selection)
     if out_path is not None and run.is_main:
         write_model(out_path, net, norm, ds, cfg, selection, run, (len(train_ds), len(val_ds)), best, t0)
     return net, norm, history
+
+
+def in_memory_refit(cfg: TrainConfig):
+    """The training of the residual's cross-validation: a fold's demos trained in memory exactly as
+    ``cfg`` says, the linear part as chosen (no selection again). Returns (network, normalization)."""
+    def refit(fold_ds):
+        fold_net, fold_norm, _ = train(fold_ds, dataclasses.replace(cfg, auto_select=False), log=lambda s: None)
+        return fold_net, fold_norm
+    return refit
+
+
+def judge_with_fallback(cfg: TrainConfig, fitted: tuple, selection: dict, log, fit_again, judge) -> tuple:
+    """``auto_select`` after the training: the residual of ``fitted`` = (net, norm, history, best)
+    judged by ``judge(net, norm, cfg)`` -> (network to keep, record); dropped beside a linear part of
+    ``cfg.linear_modes`` > 1 modes, the training runs again with one (``fit_again(cfg)`` -> fitted) and
+    its residual is judged. The records go into ``selection``, the choices into one log line. Returns
+    (the configuration trained, with its residual scale; the fitted network, normalization, history
+    and best validation MSE)."""
+    net, norm, history, best = fitted
+    net, selection["residual"] = judge(net, norm, cfg)
+    if not selection["residual"]["kept"] and cfg.linear_modes > 1:
+        log(f"residual dropped beside the linear part of {cfg.linear_modes} modes: training again with one")
+        selection["modes_fallback"] = {"linear_modes": cfg.linear_modes, "residual": selection.pop("residual")}
+        cfg = dataclasses.replace(cfg, linear_modes=1, latent_dim=cfg.latent_linear + nonlinear_dims(cfg, 1))
+        net, norm, history, best = fit_again(cfg)
+        net, selection["residual"] = judge(net, norm, cfg)
+    cfg = dataclasses.replace(cfg, residual_scale=net.cfg.residual_scale)
+    log(selection_line(selection))
+    return cfg, (net, norm, history, best)
 
 
 def write_model(out_path, net: DeepProMPNet, norm, ds, cfg: TrainConfig, selection: dict, run: Runtime,

@@ -42,10 +42,10 @@ from deepprompt_ros.model.network import DeepProMPNet
 from deepprompt_ros.training.basis import ModeOffsets, basis_weights, init_basis_pca
 from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.distributed import SINGLE, Runtime, judge_on_main, wrap
-from deepprompt_ros.training.loop import (new_network, new_optimizer, record_validation, selection_line, train,
-                                          write_model)
+from deepprompt_ros.training.loop import (in_memory_refit, judge_with_fallback, new_network, new_optimizer,
+                                          record_validation, write_model)
 from deepprompt_ros.training.objectives import encode_all, loss_fn
-from deepprompt_ros.training.selection import judge_residual, nonlinear_dims, select_linear_part
+from deepprompt_ros.training.selection import judge_residual, select_linear_part
 from deepprompt_ros.training.tensors import TensorData, demos_to_tensors, to_tensors
 
 __all__ = ["train_sharded", "streaming_normalization", "ShardBatches", "chunked_validation_mse", "bounded_subset",
@@ -212,26 +212,16 @@ def train_sharded(ds: ShardedDataset, cfg: TrainConfig, out_path=None, log=print
     if cfg.auto_select:
         cfg, selection["linear_part"] = run.broadcast(
             select_linear_part(select_ds(), cfg, len(ds.joint_names)) if run.is_main else None)
-    net, norm, history, best = _fit(ds, train_ids, val_ids, select_ids, cfg, log, run)
-    if cfg.auto_select:
-        def refit(fold_ds):  # the residual's cross-validation, in memory on folds of the selection's demos
-            fold_net, fold_norm, _ = train(fold_ds, dataclasses.replace(cfg, auto_select=False), log=lambda s: None)
-            return fold_net, fold_norm
-
+    fitted = _fit(ds, train_ids, val_ids, select_ids, cfg, log, run)
+    if cfg.auto_select:  # the residual's cross-validation, in memory on folds of the selection's demos
         val_ds = DemoDataset(tuple(ds.read(val_ids)), f"{ds.source}:val") if run.is_main else None
         fit_ds = select_ds() if images_for_refit else None
-        net, selection["residual"] = judge_on_main(run, net, lambda: judge_residual(
-            net, norm, ds.joint_names, val_ds, cfg, fit_ds, refit))
-        if not selection["residual"]["kept"] and cfg.linear_modes > 1:
-            log(f"residual dropped beside the linear part of {cfg.linear_modes} modes: training again with one")
-            selection["modes_fallback"] = {"linear_modes": cfg.linear_modes, "residual": selection.pop("residual")}
-            cfg = dataclasses.replace(cfg, linear_modes=1, latent_dim=cfg.latent_linear + nonlinear_dims(cfg, 1))
-            net, norm, history, best = _fit(ds, train_ids, val_ids, select_ids, cfg, log, run)
-            net, selection["residual"] = judge_on_main(run, net, lambda: judge_residual(
-                net, norm, ds.joint_names, val_ds, cfg, fit_ds, refit))
+        cfg, fitted = judge_with_fallback(
+            cfg, fitted, selection, log, lambda c: _fit(ds, train_ids, val_ids, select_ids, c, log, run),
+            lambda n, nm, c: judge_on_main(run, n, lambda: judge_residual(
+                n, nm, ds.joint_names, val_ds, c, fit_ds, in_memory_refit(c))))
         del val_ds, fit_ds
-        cfg = dataclasses.replace(cfg, residual_scale=net.cfg.residual_scale)
-        log(selection_line(selection))
+    net, norm, history, best = fitted
     if info is not None:
         info.update(train_config=dataclasses.asdict(cfg), selection=selection)
     if out_path is not None and run.is_main:
