@@ -35,6 +35,7 @@ from deepprompt_ros.model.network import DeepProMPNet
 from deepprompt_ros.primitive.blending import blend_gaussians
 from deepprompt_ros.primitive.inputs import check_images, check_phases, check_weights
 from deepprompt_ros.primitive.latent import PLANNER_TOLERANCE, PLANNER_VIA_NOISE, LatentGaussian
+from deepprompt_ros.primitive.linear_context import LinearContext
 from deepprompt_ros.primitive.linear_conditioning import (SplitRefinement, condition_split, linear_block_variance,
                                                           refine_split)
 from deepprompt_ros.primitive.numpy_net import NumpyNet
@@ -94,6 +95,26 @@ class DeepProMP:
         self._np = NumpyNet(net, normalization)
         self._split = self.cfg.latent_linear > 0
         self._context_dims = dict(self.cfg.context_dims)
+        self.linear_context = self._read_linear_context()
+
+    def _read_linear_context(self) -> LinearContext | None:
+        """The joint linear model of the low-dimensional contexts the training chose to condition z_lin on
+        (``metadata["selection"]["context"]["linear"]``, :mod:`deepprompt_ros.primitive.linear_context`),
+        or None; ``ValueError`` naming what is wrong for a record that does not fit this model."""
+        sel = self.metadata.get("selection")
+        rec = (sel.get("context") or {}).get("linear") if isinstance(sel, Mapping) else None
+        if not rec:
+            return None
+        if not isinstance(rec, Mapping):
+            raise ValueError(f"model '{self.name}': selection.context.linear must be a linear context record, got "
+                             f"{type(rec).__name__}")
+        lin = LinearContext.from_json(rec)
+        if (not self._split or lin.b.shape[1] != self.cfg.latent_linear
+                or any(self._context_dims.get(n) != d for n, d in zip(lin.names, lin.dims))):
+            raise ValueError(f"model '{self.name}': the linear context model of {dict(zip(lin.names, lin.dims))} "
+                             f"(B {lin.b.shape}) does not fit the model (latent_linear {self.cfg.latent_linear}, "
+                             f"contexts {dict(self._context_dims)})")
+        return lin
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -336,12 +357,19 @@ class DeepProMP:
     def _condition(self, via_x, via_y, via_weights, via_mask, contexts, context_weights, images, image_weight,
                    noise: float, n_candidates: int) -> LatentGaussian:
         """:meth:`condition` after its checks of ``via_noise`` and ``n_candidates`` (may overflow)."""
-        mus, vars_, ws = [], [], []
+        mus, vars_, ws, context_rows = [], [], [], None
         if contexts:
+            lin, checked = self.linear_context, {}
             for name, c in contexts.items():
                 mu, var = self.encode_context(name, c)
-                mus.append(mu), vars_.append(var)
-                ws.append(check_weights((context_weights or {}).get(name), mu.shape[0], f"context '{name}'"))
+                checked[name] = check_weights((context_weights or {}).get(name), mu.shape[0], f"context '{name}'")
+                if lin is not None and name in lin.names:  # z_lin observes it through the linear model; the
+                    k_l = self.cfg.latent_linear             # encoding informs z_nl only
+                    mu, var = mu.copy(), var.copy()
+                    mu[:, :k_l], var[:, :k_l] = 0.0, np.inf
+                mus.append(mu), vars_.append(var), ws.append(checked[name])
+            if lin is not None:
+                context_rows = lin.rows(contexts, checked)
         if images is not None:
             mu, var = self.encode_images(images)
             mus.append(mu), vars_.append(var)
@@ -372,13 +400,32 @@ class DeepProMP:
             return self.prior()
         # q_all differs from q_c only when via-point encodings were added after the contexts and images
         q_all = self.aggregate(_joined(mus), _joined(vars_), _joined(ws)) if len(mus) > n_c else q_c
-        if self._split and via is not None:
-            observed = self._observed(*via)
-            if via[0].shape[0] and (observed is None or observed.any()):
-                return condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, *via[:3], observed, noise,
-                                       n_candidates)
+        if self._split and (via is not None or context_rows is not None):
+            observed = None if via is None else self._observed(*via)
+            if via is not None and via[0].shape[0] and (observed is None or observed.any()):
+                lat = condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, *via[:3], observed, noise,
+                                      n_candidates, context_rows=context_rows)
+            elif context_rows is not None:  # no observed joint of a via-point: the contexts alone
+                lat = self._condition_contexts(q_c, q_all, context_rows, n_candidates)
+            else:
+                lat = None
+            if lat is not None:
+                if context_rows is None:
+                    return lat
+                # q(z | contexts, images) with the linear contexts' exact posterior of z_lin (its diagonal): the
+                # prior of MAP refinement and of the re-conditioning of refine_linear
+                ctx = self._condition_contexts(q_c, q_c, context_rows, 0)
+                k_l = self.cfg.latent_linear
+                return LatentGaussian(lat.mean, lat.var, linear=lat.linear,
+                                      context_mean=np.concatenate([ctx.mean[:k_l], q_c.mean[k_l:]]),
+                                      context_var=np.concatenate([ctx.var[:k_l], q_c.var[k_l:]]))
         # no observed joint of a via-point of weight > 0: the aggregation is the distribution
         return LatentGaussian(q_all.mean, q_all.var, context_mean=q_c.mean, context_var=q_c.var)
+
+    def _condition_contexts(self, q_c: LatentGaussian, q_all: LatentGaussian, context_rows, n_candidates: int):
+        """The split latent conditioned on the linear contexts' rows alone (no via-point)."""
+        return condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, np.zeros(0),
+                               np.zeros((0, self.n_joints)), None, None, 1.0, n_candidates, context_rows=context_rows)
 
     @staticmethod
     def _observed(x, y, w, mask) -> np.ndarray | None:

@@ -184,7 +184,8 @@ def _candidates(mean_nl: np.ndarray, var_nl: np.ndarray, n: int, seed: int) -> n
 def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.ndarray, all_mean: np.ndarray,
                     all_var: np.ndarray, x: np.ndarray, y: np.ndarray, w: np.ndarray, mask: np.ndarray,
                     noise: float, n_candidates: int = 32, seed: int = 0,
-                    candidates_nl: np.ndarray | None = None) -> LatentGaussian:
+                    candidates_nl: np.ndarray | None = None,
+                    context_rows: tuple[np.ndarray, np.ndarray] | None = None) -> LatentGaussian:
     """q(z) of a split latent: z_lin exactly conditioned on the via-points for each z_nl candidate.
 
     Parameters
@@ -207,6 +208,10 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
         Of the points' random shift (the same request gives the same latent).
     candidates_nl : array, shape (C, k − k_l), optional
         Candidates to use instead of drawing them (refinement re-conditions with the same ones).
+    context_rows : (G (M', k_l), e (M',)), optional
+        Further observations of z_lin, e − G z_lin ~ N(0, I): the low-dimensional contexts modelled
+        linearly (:meth:`deepprompt_ros.primitive.linear_context.LinearContext.rows`), conditioned on
+        together with the via-points (which may then be none: x of shape (0,)).
 
     Returns
     -------
@@ -219,7 +224,10 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
             candidates_nl = all_mean[None, k_l:]
         else:
             candidates_nl = _candidates(all_mean[k_l:], all_var[k_l:], n_candidates, seed)
-    if mask is None or mask.all():  # every joint of every via-point: rows in (via-point, joint) order
+    if x.shape[0] == 0:  # no via-point: the context rows alone
+        h, g = np.zeros((0, k_l)), np.zeros((0, k_l))
+        r, d = np.zeros((candidates_nl.shape[0], 0)), np.zeros((candidates_nl.shape[0], 0))
+    elif mask is None or mask.all():  # every joint of every via-point: rows in (via-point, joint) order
         lin_b, lin_a = net.linear_design(x)  # (n, d), (n, d, k_l)
         off = net.decode_nonlinear(candidates_nl, x)  # (C, n, d)
         off += lin_b
@@ -242,6 +250,10 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
         g = h * (s / sigma[:, None])  # whitened design
         d = r - h @ m
         d /= sigma  # whitened residuals of the candidates
+    if context_rows is not None and context_rows[0].shape[0]:
+        g_c, e_c = context_rows
+        g = np.concatenate([g, g_c * s], 0)
+        d = np.concatenate([d, np.broadcast_to(e_c - g_c @ m, (d.shape[0], e_c.shape[0]))], 1)
     single = candidates_nl.shape[0] == 1
     try:
         form, chol, u, loglik, qdiag = whitened_posterior(g, d, with_loglik=not single)

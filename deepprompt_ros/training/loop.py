@@ -23,7 +23,7 @@ from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.distributed import SINGLE, Runtime, judge_on_main, wrap
 from deepprompt_ros.training.objectives import loss_fn, validation_mse
 from deepprompt_ros.training.resume import ResumeFile, data_digest, fit_key, resume_path
-from deepprompt_ros.training.selection import judge_residual, nonlinear_dims, select_linear_part
+from deepprompt_ros.training.selection import choose_context_paths, judge_residual, nonlinear_dims, select_linear_part
 from deepprompt_ros.training.tensors import fit_normalization, to_tensors
 
 __all__ = ["train", "new_network", "new_optimizer", "record_validation", "write_model", "selection_line",
@@ -77,6 +77,9 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
             lambda n, nm, c: judge_on_main(run, n, lambda: judge_residual(
                 n, nm, ds.joint_names, val_ds, c, train_ds, in_memory_refit(c))))
     net, norm, history, best = fitted
+    if cfg.auto_select and run.is_main:
+        selection["context"] = choose_context_paths(net, norm, ds.joint_names, cfg, train_ds, val_ds)
+        log(context_line(selection["context"]))
     if info is not None:
         info.update(train_config=dataclasses.asdict(cfg), selection=selection)
     if out_path is not None and run.is_main:
@@ -248,3 +251,12 @@ def selection_line(selection: dict) -> str:
     return (f"selected on the training demos: decoder_basis {lin['decoder_basis']}, latent_linear "
             f"{lin['latent_linear']} (latent_dim {lin['latent_dim']}), basis_cov_reg {lin['basis_cov_reg']:g} "
             f"({lin['basis_cov_reg_units']}), via_noise {lin['via_noise']:g} ({how}{lin['method']}), {modes}; {r}")
+
+
+def context_line(record: dict) -> str:
+    """The log line of :func:`~deepprompt_ros.training.selection.choose_context_paths`' choice."""
+    if "reason" in record:
+        return f"contexts: encoders only ({record['reason']})"
+    v = record["validation"]
+    return (f"contexts: {'linear model' if v['kept'] else 'encoders only'} (validation MSE {v['linear_mse']:.3g} "
+            f"rad2 with the linear model, {v['encoder_mse']:.3g} without)")

@@ -14,7 +14,10 @@
    the energy score (:func:`energy_score`, a strictly proper scoring rule) of samples of the
    distribution the primitive's own conditioning path gives
    (:meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.condition` and ``sample``), with the
-   one-standard-error rule (:func:`keep_residual`).
+   one-standard-error rule (:func:`keep_residual`);
+3. :func:`choose_context_paths` — per low-dimensional context modality, conditioning z_lin on it
+   through its linear Gaussian model (ProMP's joint Gaussian of trajectory and context, in the latent)
+   or through the learned encoder alone, by the validation demos' reconstruction from the context.
 
 Held-out (test) demonstrations are never passed to either.
 """
@@ -31,11 +34,12 @@ from deepprompt_ros.model.network import DeepProMPNet
 from deepprompt_ros.model.phase import phase_basis
 from deepprompt_ros.primitive.deep_promp import DeepProMP
 from deepprompt_ros.primitive.latent import PLANNER_VIA_NOISE
+from deepprompt_ros.primitive.linear_context import fit_linear_context
 from deepprompt_ros.training.basis import basis_weights, cv_basis_hyperparameters, fold_assignment, weight_modes
 from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.tensors import fit_normalization, to_tensors
 
-__all__ = ["select_linear_part", "nonlinear_dims", "judge_residual", "energy_score", "keep_residual", "without_residual",
+__all__ = ["select_linear_part", "nonlinear_dims", "judge_residual", "choose_context_paths", "energy_score", "keep_residual", "without_residual",
            "FALLBACK_LINEAR_PART", "RESIDUAL_VIA_POINTS", "RESIDUAL_DRAWS", "RESIDUAL_SAMPLES"]
 
 #: The linear part used when the training split has fewer than 3 demonstrations (nothing to
@@ -241,3 +245,45 @@ def keep_residual(with_residual: np.ndarray, without: np.ndarray) -> tuple[bool,
         return False, float(diff.mean()), float("inf")
     se = float(diff.std(ddof=1) / np.sqrt(diff.size))
     return bool(diff.mean() + se < 0.0), float(diff.mean()), se
+
+
+def choose_context_paths(net: DeepProMPNet, norm: Normalization, joint_names, cfg: TrainConfig,
+                         train_ds: DemoDataset, val_ds: DemoDataset) -> dict:
+    """``auto_select`` after the residual's judgement: whether the primitive conditions z_lin on the
+    low-dimensional contexts through their joint linear Gaussian model
+    (:mod:`deepprompt_ros.primitive.linear_context`, fitted on the training demos' z_lin — each demo's
+    posterior mean under the trained model given all its points — and their contexts) or through the
+    learned encoders alone: the one of the lower MSE on the validation demos reconstructed from their
+    first point and every context (the ``low_dim`` conditioning, the server's default path).
+
+    Returns the record ``selection["context"]``: ``linear`` (the model's JSON when kept, else None — what
+    :class:`~deepprompt_ros.primitive.deep_promp.DeepProMP` reads), ``validation`` {"encoder_mse",
+    "linear_mse", "kept"} and ``method``; without a linear block, low-dim contexts, 3 training demos or
+    a validation demo, ``linear`` is None and ``reason`` says why."""
+    names = sorted(train_ds.context_dims)
+    if not cfg.latent_linear or not names or len(train_ds) < 3 or not len(val_ds):
+        why = ("no linear latent block" if not cfg.latent_linear else "no low-dimensional context" if not names
+               else "fewer than 3 training or no validation demonstrations")
+        return {"linear": None, "reason": why}
+    base = DeepProMP(net, norm, joint_names, name="selection")
+    x = np.linspace(0.0, 1.0, cfg.n_points)
+    scores = np.stack([base.condition(x, d.resampled(cfg.n_points), n_candidates=0).mean[:cfg.latent_linear]
+                       for d in train_ds.demos])
+    model = fit_linear_context({n: np.stack([d.contexts[n].mean(0) for d in train_ds.demos]) for n in names}, scores)
+
+    def val_mse(linear) -> float:
+        prim = DeepProMP(net, norm, joint_names, name="selection",
+                         metadata={"selection": {"context": {"linear": linear}}})
+        errs = []
+        for d in val_ds.demos:
+            y = d.resampled(cfg.n_points)
+            lat = prim.condition_planner(x[:1], y[:1], contexts=dict(d.contexts)).latent
+            errs.append(float(((prim.decode(lat.mean, x) - y) ** 2).mean()))
+        return float(np.mean(errs))
+
+    enc, lin = val_mse(None), val_mse(model.to_json())
+    return {"linear": model.to_json() if lin < enc else None,
+            "validation": {"encoder_mse": enc, "linear_mse": lin, "kept": lin < enc},
+            "method": f"joint linear Gaussian model of the contexts {list(names)} on z_lin of the {len(train_ds)} "
+                      f"training demonstrations, kept if the {len(val_ds)} validation demonstrations' low_dim "
+                      "reconstruction MSE is lower with it"}
