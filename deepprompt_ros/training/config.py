@@ -58,8 +58,11 @@ class TrainConfig:
                                     "initialized as their PPCA and kept fixed (basis_init pca, "
                                     "basis_lr_scale 0), then the MLP residual kept (residual_scale) or dropped (0) "
                                     "on the validation demos (dropped with linear_modes > 1: trained again with "
-                                    "linear_modes 1); the file's values of those keys are not used. false: every "
-                                    "key as given")
+                                    "linear_modes 1), and the low-dim contexts conditioned through their joint "
+                                    "linear Gaussian model of z_lin or through the encoders alone, whichever "
+                                    "reconstructs the validation demos better (in-memory training; a sharded "
+                                    "dataset keeps the encoders); the file's values of those keys are not used. "
+                                    "false: every key as given")
     latent_nonlinear: int = param(8, "with auto_select: k_n, the latent dimensions only the MLP reads (the "
                                      "nonlinear block that can hold several modes) when the demos form one mode; "
                                      "with linear_modes K > 1 the block has K - 1 dimensions, the offsets between "
