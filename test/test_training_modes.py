@@ -9,14 +9,15 @@ import pytest
 import torch
 
 from deepprompt_ros.data.demo_dataset import DemoDataset
-from deepprompt_ros.data.demonstration import Demonstration
+from deepprompt_ros.data.demonstration import Demonstration, demo_from_arrays
 from deepprompt_ros.data.synthetic import bimodal_sine
 from deepprompt_ros.model.checkpoint import load_checkpoint
+from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
 from deepprompt_ros.model.phase import phase_basis
 from deepprompt_ros.training.basis import (MODE_DIP, basis_weights, mode_dip, pca_basis, weight_modes)
 from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.loop import train
-from deepprompt_ros.training.selection import select_linear_part
+from deepprompt_ros.training.selection import compare_modes, select_linear_part
 from deepprompt_ros.training.tensors import fit_normalization
 
 torch.set_num_threads(1)
@@ -134,3 +135,38 @@ def test_a_residual_dropped_beside_modes_sends_the_training_back_to_one_gaussian
     np.testing.assert_allclose(served @ served.T, a @ a.T, rtol=3e-5, atol=1e-6)  # float32 storage of A
     np.testing.assert_allclose(net.basis.bias.detach().numpy(), mean, atol=1e-5)
     assert load_checkpoint(tmp_path / "m.safetensors").metadata["selection"]["modes_fallback"]["linear_modes"] == 2
+
+
+# ----------------------------------------------------------------------------- modes against one mode
+def _bimodal_demos(n, seed):
+    """Demos of the hand-built two-mode model of test_linear_conditioning: a ramp with small variations
+    plus ±sin(πx)·(1, 0.5), half of each sign."""
+    rng = np.random.default_rng(seed)
+    x = np.linspace(0, 1, 50)
+    sign = np.where(np.arange(n) % 2 == 0, 1.0, -1.0)
+    y = (0.3 * x[None, :, None] * np.array([1.0, 0.5]) + rng.normal(0, 0.05, (n, 1, 2)) * x[None, :, None]
+         + rng.normal(0, 0.05, (n, 1, 2)) * (x ** 2)[None, :, None]
+         + sign[:, None, None] * np.sin(np.pi * x)[None, :, None] * np.array([1.0, 0.5]))
+    return x, y
+
+
+def test_modes_are_kept_over_one_mode_only_where_they_score_better():
+    from test_linear_conditioning import bimodal_model
+    several, x = bimodal_model()
+    _, y_tr = _bimodal_demos(40, 1)
+    mean, a, _ = pca_basis(phase_basis(x, 8, 1.0, False), y_tr, 16, 0.05)
+    net = DeepProMPNet(ModelConfig(n_joints=2, latent_dim=17, hidden=8, decoder_basis=8, latent_linear=16,
+                                   residual_scale=0.0))
+    with torch.no_grad():
+        net.basis.bias.copy_(torch.as_tensor(mean))
+        net.basis.weight.copy_(torch.as_tensor(a))
+    one = (net, several.norm)
+    _, y_val = _bimodal_demos(12, 2)
+    val = DemoDataset(tuple(demo_from_arrays(f"v{i}", x * 4.0, y_val[i], ["a", "b"]) for i in range(len(y_val))))
+    cfg = TrainConfig(n_points=50)
+    keep, rec = compare_modes((several.net, several.norm), one, ["a", "b"], val, cfg)
+    # the start point (where the modes meet) leaves one Gaussian between the modes: the two-mode model's
+    # samples score better, and 5 via-points put both means on the demo's mode
+    assert keep and rec["relative_difference"] + rec["standard_error"] < 0, rec
+    keep, rec = compare_modes(one, (several.net, several.norm), ["a", "b"], val, cfg)
+    assert not keep and rec["relative_difference"] > 0, rec

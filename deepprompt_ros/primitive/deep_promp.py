@@ -96,6 +96,10 @@ class DeepProMP:
         self._split = self.cfg.latent_linear > 0
         self._context_dims = dict(self.cfg.context_dims)
         self.linear_context = self._read_linear_context()
+        #: with the contexts' linear model in a request, whether the images' encodings still inform z_lin
+        #: (``selection.context.images_inform_z_lin``, default true) or z_nl only
+        self.images_inform_z_lin = bool(((self.metadata.get("selection") or {}).get("context") or {}).get(
+            "images_inform_z_lin", True)) if isinstance(self.metadata.get("selection"), Mapping) else True
 
     def _read_linear_context(self) -> LinearContext | None:
         """The joint linear model of the low-dimensional contexts the training chose to condition z_lin on
@@ -372,6 +376,9 @@ class DeepProMP:
                 context_rows = lin.rows(contexts, checked)
         if images is not None:
             mu, var = self.encode_images(images)
+            if context_rows is not None and not self.images_inform_z_lin:  # the contexts' linear model decides z_lin
+                mu, var = mu.copy(), var.copy()
+                mu[:, :self.cfg.latent_linear], var[:, :self.cfg.latent_linear] = 0.0, np.inf
             mus.append(mu), vars_.append(var)
             ws.append(check_weights([image_weight], 1, "images"))
         n_c = len(mus)

@@ -23,7 +23,8 @@ from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.distributed import SINGLE, Runtime, judge_on_main, wrap
 from deepprompt_ros.training.objectives import loss_fn, validation_mse
 from deepprompt_ros.training.resume import ResumeFile, data_digest, fit_key, resume_path
-from deepprompt_ros.training.selection import choose_context_paths, judge_residual, nonlinear_dims, select_linear_part
+from deepprompt_ros.training.selection import (choose_context_paths, compare_modes, judge_residual, nonlinear_dims,
+                                               select_linear_part)
 from deepprompt_ros.training.tensors import fit_normalization, to_tensors
 
 __all__ = ["train", "new_network", "new_optimizer", "record_validation", "write_model", "selection_line",
@@ -75,7 +76,8 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
         cfg, fitted = judge_with_fallback(
             cfg, fitted, selection, log, lambda c: _fit(train_ds, val_ds, c, log, run, ckpt, fit_no=1),
             lambda n, nm, c: judge_on_main(run, n, lambda: judge_residual(
-                n, nm, ds.joint_names, val_ds, c, train_ds, in_memory_refit(c))))
+                n, nm, ds.joint_names, val_ds, c, train_ds, in_memory_refit(c))),
+            lambda a, b, c: run.broadcast(compare_modes(a, b, ds.joint_names, val_ds, c) if run.is_main else None))
     net, norm, history, best = fitted
     if cfg.auto_select and run.is_main:
         selection["context"] = choose_context_paths(net, norm, ds.joint_names, cfg, train_ds, val_ds)
@@ -96,21 +98,31 @@ def in_memory_refit(cfg: TrainConfig):
     return refit
 
 
-def judge_with_fallback(cfg: TrainConfig, fitted: tuple, selection: dict, log, fit_again, judge) -> tuple:
+def judge_with_fallback(cfg: TrainConfig, fitted: tuple, selection: dict, log, fit_again, judge, compare) -> tuple:
     """``auto_select`` after the training: the residual of ``fitted`` = (net, norm, history, best)
-    judged by ``judge(net, norm, cfg)`` -> (network to keep, record); dropped beside a linear part of
-    ``cfg.linear_modes`` > 1 modes, the training runs again with one (``fit_again(cfg)`` -> fitted) and
-    its residual is judged. The records go into ``selection``, the choices into one log line. Returns
-    (the configuration trained, with its residual scale; the fitted network, normalization, history
-    and best validation MSE)."""
+    judged by ``judge(net, norm, cfg)`` -> (network to keep, record). Beside a linear part of
+    ``cfg.linear_modes`` > 1 modes the training runs again with one (``fit_again(cfg)`` -> fitted), its
+    residual is judged, and the modes are kept only if their residual was kept and
+    ``compare((net, norm) of the modes, (net, norm) of one mode, cfg)`` -> (keep the modes, record)
+    prefers them. The records go into ``selection``, the choices into one log line. Returns (the
+    configuration trained, with its residual scale; the fitted network, normalization, history and
+    best validation MSE)."""
     net, norm, history, best = fitted
     net, selection["residual"] = judge(net, norm, cfg)
-    if not selection["residual"]["kept"] and cfg.linear_modes > 1:
-        log(f"residual dropped beside the linear part of {cfg.linear_modes} modes: training again with one")
-        selection["modes_fallback"] = {"linear_modes": cfg.linear_modes, "residual": selection.pop("residual")}
+    if cfg.linear_modes > 1:
+        several, modes_cfg, modes_fitted = selection.pop("residual"), cfg, (net, norm, history, best)
+        log(f"residual {'kept' if several['kept'] else 'dropped'} beside the linear part of {cfg.linear_modes} "
+            "modes: training with one mode to compare")
         cfg = dataclasses.replace(cfg, linear_modes=1, latent_dim=cfg.latent_linear + nonlinear_dims(cfg, 1))
         net, norm, history, best = fit_again(cfg)
         net, selection["residual"] = judge(net, norm, cfg)
+        keep, record = compare((modes_fitted[0], modes_fitted[1]), (net, norm), modes_cfg) if several["kept"] else \
+            (False, {"kept_modes": False, "reason": "the residual of the modes was dropped"})
+        selection["modes_fallback"] = {"linear_modes": modes_cfg.linear_modes, "residual": several, **record}
+        if keep:
+            selection["one_mode"] = {"residual": selection.pop("residual")}
+            selection["residual"] = several
+            cfg, (net, norm, history, best) = modes_cfg, modes_fitted
     cfg = dataclasses.replace(cfg, residual_scale=net.cfg.residual_scale)
     log(selection_line(selection))
     return cfg, (net, norm, history, best)
@@ -246,8 +258,16 @@ def selection_line(selection: dict) -> str:
          f"{res['via_mean_relative_difference']:+.3f} ± {res['via_mean_standard_error']:.3f} on the {res['n_val']} "
          f"{res['judged_on']})" if "relative_difference" in res else f"residual: {res['reason']}")
     fallback = selection.get("modes_fallback")
-    modes = (f"linear_modes {lin['linear_modes']}, its residual dropped: linear_modes 1"
-             if fallback else f"linear_modes {lin['linear_modes']}")
+    if not fallback:
+        modes = f"linear_modes {lin['linear_modes']}"
+    elif fallback["kept_modes"]:
+        modes = (f"linear_modes {lin['linear_modes']} kept over one mode (energy score's relative difference "
+                 f"{fallback['relative_difference']:+.3f} ± {fallback['standard_error']:.3f})")
+    else:
+        why = fallback.get("reason") or (f"not better than one mode: energy score's relative difference "
+                                         f"{fallback['relative_difference']:+.3f} ± {fallback['standard_error']:.3f}, "
+                                         f"the via-point means' {fallback['via_mean_relative_difference']:+.3f}")
+        modes = f"linear_modes {lin['linear_modes']} ({why}): linear_modes 1"
     return (f"selected on the training demos: decoder_basis {lin['decoder_basis']}, latent_linear "
             f"{lin['latent_linear']} (latent_dim {lin['latent_dim']}), basis_cov_reg {lin['basis_cov_reg']:g} "
             f"({lin['basis_cov_reg_units']}), via_noise {lin['via_noise']:g} ({how}{lin['method']}), {modes}; {r}")
@@ -257,6 +277,5 @@ def context_line(record: dict) -> str:
     """The log line of :func:`~deepprompt_ros.training.selection.choose_context_paths`' choice."""
     if "reason" in record:
         return f"contexts: encoders only ({record['reason']})"
-    v = record["validation"]
-    return (f"contexts: {'linear model' if v['kept'] else 'encoders only'} (validation MSE {v['linear_mse']:.3g} "
-            f"rad2 with the linear model, {v['encoder_mse']:.3g} without)")
+    rel = ", ".join(f"{k} {v:.3g}" for k, v in record["relative"].items())
+    return f"contexts: {record['chosen']} (validation MSE relative to the encoders': {rel})"

@@ -39,7 +39,7 @@ from deepprompt_ros.training.basis import basis_weights, cv_basis_hyperparameter
 from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.tensors import fit_normalization, to_tensors
 
-__all__ = ["select_linear_part", "nonlinear_dims", "judge_residual", "choose_context_paths", "energy_score", "keep_residual", "without_residual",
+__all__ = ["select_linear_part", "nonlinear_dims", "judge_residual", "compare_modes", "choose_context_paths", "energy_score", "keep_residual", "without_residual",
            "FALLBACK_LINEAR_PART", "RESIDUAL_VIA_POINTS", "RESIDUAL_DRAWS", "RESIDUAL_SAMPLES"]
 
 #: The linear part used when the training split has fewer than 3 demonstrations (nothing to
@@ -194,7 +194,14 @@ def _residual_scores(net: DeepProMPNet, norm: Normalization, joint_names, demos:
     (the norm of a whole trajectory in normalized units divided by sqrt(T d)); both models draw their
     samples with the same seeds."""
     on = DeepProMP(net, norm, joint_names)
-    off = on.with_residual_scale(0.0)
+    return _pair_scores(on, on.with_residual_scale(0.0), demos, cfg, extras)
+
+
+def _pair_scores(on: DeepProMP, off: DeepProMP, demos: DemoDataset, cfg: TrainConfig,
+                 extras: bool) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_residual_scores` of two primitives ``on`` and ``off`` (index 0 and 1), in the units of
+    ``on``'s normalization."""
+    norm = on.norm
     x = np.linspace(0.0, 1.0, cfg.n_points)
     std = np.asarray(norm.y_std, dtype=np.float64)
     root = np.sqrt(cfg.n_points * len(std))
@@ -219,6 +226,27 @@ def _residual_scores(net: DeepProMPNet, norm: Normalization, joint_names, demos:
     per = lambda e: np.concatenate([e[:, :1], e[:, 1:1 + RESIDUAL_DRAWS].mean(1, keepdims=True),  # noqa: E731
                                     e[:, 1 + RESIDUAL_DRAWS:]], 1)
     return per(es), per(mse)
+
+
+def compare_modes(several: tuple[DeepProMPNet, Normalization], one: tuple[DeepProMPNet, Normalization], joint_names,
+                  val_ds: DemoDataset, cfg: TrainConfig) -> tuple[bool, dict]:
+    """After a training of K > 1 modes kept its residual: keep it over the training of one mode
+    (``linear_modes`` 1, its residual judged) only when the rule of :func:`judge_residual` prefers it on
+    the validation demos — a lower energy score by more than one standard error, and an executed mean
+    at the random via-point sets not worse by more than one — so that modes are kept where they make
+    the conditioned distribution better, never at the cost of the via-points. (The residual of K > 1
+    modes is judged against the linear part of the modes alone, which holds none of the offsets between
+    them: a weak reference.) Returns (keep the modes, the record)."""
+    extras = bool(val_ds.context_dims) or val_ds.image_shape is not None
+    es, mse = _pair_scores(DeepProMP(*several, joint_names), DeepProMP(*one, joint_names), val_ds, cfg, extras)
+    scale = np.maximum(es[1].mean(1, keepdims=True), 1e-300)
+    better, diff, se = keep_residual(es[0] / scale, es[1] / scale)
+    via = (mse[0, 1] - mse[1, 1]) / max(float(mse[1, 1].mean()), 1e-300)
+    via_diff, via_se = float(via.mean()), float(via.std(ddof=1) / np.sqrt(via.size)) if via.size >= 2 else 0.0
+    keep = better and via_diff - via_se <= 0.0
+    return keep, {"kept_modes": bool(keep), "judged_on": "validation demos", "relative_difference": diff,
+                  "standard_error": se, "via_mean_relative_difference": via_diff, "via_mean_standard_error": via_se,
+                  "mse_modes": mse[0].mean(1).tolist(), "mse_one_mode": mse[1].mean(1).tolist()}
 
 
 def without_residual(net: DeepProMPNet) -> DeepProMPNet:
@@ -253,13 +281,16 @@ def choose_context_paths(net: DeepProMPNet, norm: Normalization, joint_names, cf
     low-dimensional contexts through their joint linear Gaussian model
     (:mod:`deepprompt_ros.primitive.linear_context`, fitted on the training demos' z_lin — each demo's
     posterior mean under the trained model given all its points — and their contexts) or through the
-    learned encoders alone: the one of the lower MSE on the validation demos reconstructed from their
-    first point and every context (the ``low_dim`` conditioning, the server's default path).
+    learned encoders alone, and with the linear model and images whether the images' encodings still
+    inform z_lin. The candidates are scored on the validation demos reconstructed from their first point
+    and every context (``low_dim``, the server's default path) and, with images, from those and the
+    images (``image+low``): the mean over those conditionings of the MSE relative to the encoders'; the
+    lowest wins (the encoders on a tie).
 
-    Returns the record ``selection["context"]``: ``linear`` (the model's JSON when kept, else None — what
-    :class:`~deepprompt_ros.primitive.deep_promp.DeepProMP` reads), ``validation`` {"encoder_mse",
-    "linear_mse", "kept"} and ``method``; without a linear block, low-dim contexts, 3 training demos or
-    a validation demo, ``linear`` is None and ``reason`` says why."""
+    Returns the record ``selection["context"]``: ``linear`` (the model's JSON when kept, else None) and
+    ``images_inform_z_lin`` — what :class:`~deepprompt_ros.primitive.deep_promp.DeepProMP` reads —,
+    ``validation`` {candidate: {conditioning: MSE rad²}} and ``method``; without a linear block, low-dim
+    contexts, 3 training demos or a validation demo, ``linear`` is None and ``reason`` says why."""
     names = sorted(train_ds.context_dims)
     if not cfg.latent_linear or not names or len(train_ds) < 3 or not len(val_ds):
         why = ("no linear latent block" if not cfg.latent_linear else "no low-dimensional context" if not names
@@ -270,20 +301,30 @@ def choose_context_paths(net: DeepProMPNet, norm: Normalization, joint_names, cf
     scores = np.stack([base.condition(x, d.resampled(cfg.n_points), n_candidates=0).mean[:cfg.latent_linear]
                        for d in train_ds.demos])
     model = fit_linear_context({n: np.stack([d.contexts[n].mean(0) for d in train_ds.demos]) for n in names}, scores)
+    images = val_ds.image_shape is not None and net.cfg.image_shape is not None
+    conds = ("low_dim", "image+low") if images else ("low_dim",)
+    candidates = {"encoders": {"linear": None}, "linear model": {"linear": model.to_json()}}
+    if images:
+        candidates["linear model"]["images_inform_z_lin"] = True
+        candidates["linear model, images on z_nl"] = {"linear": model.to_json(), "images_inform_z_lin": False}
 
-    def val_mse(linear) -> float:
-        prim = DeepProMP(net, norm, joint_names, name="selection",
-                         metadata={"selection": {"context": {"linear": linear}}})
-        errs = []
-        for d in val_ds.demos:
-            y = d.resampled(cfg.n_points)
-            lat = prim.condition_planner(x[:1], y[:1], contexts=dict(d.contexts)).latent
-            errs.append(float(((prim.decode(lat.mean, x) - y) ** 2).mean()))
-        return float(np.mean(errs))
+    def val_mse(record) -> dict:
+        prim = DeepProMP(net, norm, joint_names, name="selection", metadata={"selection": {"context": record}})
+        out = {}
+        for c in conds:
+            errs = []
+            for d in val_ds.demos:
+                y = d.resampled(cfg.n_points)
+                lat = prim.condition_planner(x[:1], y[:1], contexts=dict(d.contexts),
+                                             images=d.images if c == "image+low" else None).latent
+                errs.append(float(((prim.decode(lat.mean, x) - y) ** 2).mean()))
+            out[c] = float(np.mean(errs))
+        return out
 
-    enc, lin = val_mse(None), val_mse(model.to_json())
-    return {"linear": model.to_json() if lin < enc else None,
-            "validation": {"encoder_mse": enc, "linear_mse": lin, "kept": lin < enc},
+    table = {k: val_mse(rec) for k, rec in candidates.items()}
+    rel = {k: float(np.mean([v[c] / max(table["encoders"][c], 1e-300) for c in conds])) for k, v in table.items()}
+    best = min(rel, key=lambda k: (rel[k], k != "encoders"))
+    return {**candidates[best], "chosen": best, "validation": table, "relative": rel,
             "method": f"joint linear Gaussian model of the contexts {list(names)} on z_lin of the {len(train_ds)} "
-                      f"training demonstrations, kept if the {len(val_ds)} validation demonstrations' low_dim "
-                      "reconstruction MSE is lower with it"}
+                      f"training demonstrations against the encoders: mean MSE relative to the encoders' over "
+                      f"{' and '.join(conds)} of the {len(val_ds)} validation demonstrations"}
