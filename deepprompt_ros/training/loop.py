@@ -39,10 +39,11 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
     With ``cfg.auto_select`` the linear part and the modes of the demos are chosen on the training
     split before training (:func:`~deepprompt_ros.training.selection.select_linear_part`) and the MLP
     residual kept or dropped on the validation split after it by the energy score of conditioned
-    samples (:func:`~deepprompt_ros.training.selection.judge_residual`). A residual dropped beside a
-    linear part taken within K > 1 modes (which alone would hold one mode's variation, not the
-    modes) sends the training back to K = 1, the PPCA of all demos, and its residual is judged again.
-    Every choice is logged in one line and recorded in the checkpoint's metadata (``selection``,
+    samples (:func:`~deepprompt_ros.training.selection.judge_residual`). With K > 1 modes the
+    training with K = 1 (the PPCA of all demos) runs too, its residual judged, and the modes are served
+    only when their residual was kept and they beat it on the validation split
+    (:func:`~deepprompt_ros.training.selection.compare_modes`). Then the path of the low-dimensional
+    contexts (:func:`~deepprompt_ros.training.selection.choose_context_paths`). Every choice is logged in one line and recorded in the checkpoint's metadata (``selection``,
     and ``train_config`` holds the configuration actually trained).
 
     ``info``, when given, receives the checkpoint's metadata entries ``train_config`` and ``selection``.

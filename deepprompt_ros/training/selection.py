@@ -14,7 +14,8 @@
    the energy score (:func:`energy_score`, a strictly proper scoring rule) of samples of the
    distribution the primitive's own conditioning path gives
    (:meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.condition` and ``sample``), with the
-   one-standard-error rule (:func:`keep_residual`);
+   one-standard-error rule (:func:`keep_residual`); with K > 1 modes, :func:`compare_modes` — the
+   modes served only where they beat the training of one mode by the same rule;
 3. :func:`choose_context_paths` — per low-dimensional context modality, conditioning z_lin on it
    through its linear Gaussian model (ProMP's joint Gaussian of trajectory and context, in the latent)
    or through the learned encoder alone, by the validation demos' reconstruction from the context.
