@@ -161,7 +161,7 @@ def goal2(results: dict) -> tuple[str, dict]:
             continue  # no context in the data, or the baselines were not run on this task
         # Aggregate: the mean over the conditionings every compared model takes on this task (ProMP takes no
         # image), so that no model's mean holds conditionings another's lacks
-        shared = [c for c in res["conditionings"] if c != "aggregate" and all(
+        shared = [c for c in reconstruction.PAPER_CONDITIONINGS if c in res["conditionings"] and c != "aggregate" and all(
             all(c in mse for mse, _ in records(runs, k)) for k in ("deepprompt", "promp_full") + BASELINES
             if records(runs, k))]
         data[task] = {"aggregate_over": shared}
