@@ -95,18 +95,18 @@ class DeepProMP:
         self._np = NumpyNet(net, normalization)
         self._split = self.cfg.latent_linear > 0
         self._context_dims = dict(self.cfg.context_dims)
-        self.linear_context = self._read_linear_context()
+        sel = self.metadata.get("selection")
+        record = (sel.get("context") or {}) if isinstance(sel, Mapping) else {}
+        self.linear_context = self._read_linear_context(record.get("linear"))
         #: with the contexts' linear model in a request, whether the images' encodings still inform z_lin
         #: (``selection.context.images_inform_z_lin``, default true) or z_nl only
-        self.images_inform_z_lin = bool(((self.metadata.get("selection") or {}).get("context") or {}).get(
-            "images_inform_z_lin", True)) if isinstance(self.metadata.get("selection"), Mapping) else True
+        self.images_inform_z_lin = bool(record.get("images_inform_z_lin", True))
 
-    def _read_linear_context(self) -> LinearContext | None:
+    def _read_linear_context(self, rec) -> LinearContext | None:
         """The joint linear model of the low-dimensional contexts the training chose to condition z_lin on
-        (``metadata["selection"]["context"]["linear"]``, :mod:`deepprompt_ros.primitive.linear_context`),
-        or None; ``ValueError`` naming what is wrong for a record that does not fit this model."""
-        sel = self.metadata.get("selection")
-        rec = (sel.get("context") or {}).get("linear") if isinstance(sel, Mapping) else None
+        (``rec`` = ``metadata["selection"]["context"]["linear"]``,
+        :mod:`deepprompt_ros.primitive.linear_context`), or None; ``ValueError`` naming what is wrong for a
+        record that does not fit this model."""
         if not rec:
             return None
         if not isinstance(rec, Mapping):
@@ -407,32 +407,26 @@ class DeepProMP:
             return self.prior()
         # q_all differs from q_c only when via-point encodings were added after the contexts and images
         q_all = self.aggregate(_joined(mus), _joined(vars_), _joined(ws)) if len(mus) > n_c else q_c
-        if self._split and (via is not None or context_rows is not None):
-            observed = None if via is None else self._observed(*via)
-            if via is not None and via[0].shape[0] and (observed is None or observed.any()):
-                lat = condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, *via[:3], observed, noise,
-                                      n_candidates, context_rows=context_rows)
-            elif context_rows is not None:  # no observed joint of a via-point: the contexts alone
-                lat = self._condition_contexts(q_c, q_all, context_rows, n_candidates)
-            else:
-                lat = None
-            if lat is not None:
-                if context_rows is None:
-                    return lat
-                # q(z | contexts, images) with the linear contexts' exact posterior of z_lin (its diagonal): the
-                # prior of MAP refinement and of the re-conditioning of refine_linear
-                ctx = self._condition_contexts(q_c, q_c, context_rows, 0)
-                k_l = self.cfg.latent_linear
-                return LatentGaussian(lat.mean, lat.var, linear=lat.linear,
-                                      context_mean=np.concatenate([ctx.mean[:k_l], q_c.mean[k_l:]]),
-                                      context_var=np.concatenate([ctx.var[:k_l], q_c.var[k_l:]]))
+        observed = None if via is None else self._observed(*via)
+        has_via = via is not None and via[0].shape[0] and (observed is None or observed.any())
+        if self._split and has_via and context_rows is None:
+            return condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, *via[:3], observed, noise,
+                                   n_candidates)
+        if self._split and context_rows is not None:
+            # q(z | contexts, images) with the linear contexts' exact posterior of z_lin (its diagonal) is the
+            # prior of MAP refinement and of the re-conditioning of refine_linear; without a via-point it is the
+            # distribution itself
+            ctx = condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, np.zeros(0),
+                                  np.zeros((0, self.n_joints)), None, None, 1.0, 0 if has_via else n_candidates,
+                                  context_rows=context_rows)
+            lat = condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, *via[:3], observed, noise,
+                                  n_candidates, context_rows=context_rows) if has_via else ctx
+            k_l = self.cfg.latent_linear
+            return LatentGaussian(lat.mean, lat.var, linear=lat.linear,
+                                  context_mean=np.concatenate([ctx.mean[:k_l], q_c.mean[k_l:]]),
+                                  context_var=np.concatenate([ctx.var[:k_l], q_c.var[k_l:]]))
         # no observed joint of a via-point of weight > 0: the aggregation is the distribution
         return LatentGaussian(q_all.mean, q_all.var, context_mean=q_c.mean, context_var=q_c.var)
-
-    def _condition_contexts(self, q_c: LatentGaussian, q_all: LatentGaussian, context_rows, n_candidates: int):
-        """The split latent conditioned on the linear contexts' rows alone (no via-point)."""
-        return condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, np.zeros(0),
-                               np.zeros((0, self.n_joints)), None, None, 1.0, n_candidates, context_rows=context_rows)
 
     @staticmethod
     def _observed(x, y, w, mask) -> np.ndarray | None:

@@ -57,9 +57,10 @@ class TrainConfig:
                                     "(latent_linear + linear_modes - 1 with several modes), the linear part "
                                     "initialized as their PPCA and kept fixed (basis_init pca, "
                                     "basis_lr_scale 0), then the MLP residual kept (residual_scale) or dropped (0) "
-                                    "on the validation demos (with linear_modes > 1 the training with linear_modes 1 "
-                                    "runs too and the modes are kept only if better there), and the low-dim contexts conditioned through their joint "
-                                    "linear Gaussian model of z_lin or through the encoders alone, whichever "
+                                    "on the validation demos (with linear_modes > 1 the training with "
+                                    "linear_modes 1 runs too and the modes are kept only if better there), and "
+                                    "the low-dim contexts conditioned through their joint linear Gaussian model "
+                                    "of z_lin or through the encoders alone, whichever "
                                     "reconstructs the validation demos better (in-memory training; a sharded "
                                     "dataset keeps the encoders); the file's values of those keys are not used. "
                                     "false: every key as given")

@@ -43,8 +43,9 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
     training with K = 1 (the PPCA of all demos) runs too, its residual judged, and the modes are served
     only when their residual was kept and they beat it on the validation split
     (:func:`~deepprompt_ros.training.selection.compare_modes`). Then the path of the low-dimensional
-    contexts (:func:`~deepprompt_ros.training.selection.choose_context_paths`). Every choice is logged in one line and recorded in the checkpoint's metadata (``selection``,
-    and ``train_config`` holds the configuration actually trained).
+    contexts (:func:`~deepprompt_ros.training.selection.choose_context_paths`). Every choice is logged
+    and recorded in the checkpoint's metadata (``selection``, and ``train_config`` holds the
+    configuration actually trained).
 
     ``info``, when given, receives the checkpoint's metadata entries ``train_config`` and ``selection``.
 
@@ -74,11 +75,9 @@ def train(ds: DemoDataset, cfg: TrainConfig, out_path=None, log=print, val_ds: D
             select_linear_part(train_ds, cfg, len(ds.joint_names)) if run.is_main else None)
     fitted = _fit(train_ds, val_ds, cfg, log, run, ckpt, fit_no=0)
     if cfg.auto_select:
-        cfg, fitted = judge_with_fallback(
-            cfg, fitted, selection, log, lambda c: _fit(train_ds, val_ds, c, log, run, ckpt, fit_no=1),
-            lambda n, nm, c: judge_on_main(run, n, lambda: judge_residual(
-                n, nm, ds.joint_names, val_ds, c, train_ds, in_memory_refit(c))),
-            lambda a, b, c: run.broadcast(compare_modes(a, b, ds.joint_names, val_ds, c) if run.is_main else None))
+        cfg, fitted = judge_with_fallback(cfg, fitted, selection, log,
+                                          lambda c: _fit(train_ds, val_ds, c, log, run, ckpt, fit_no=1),
+                                          run, ds.joint_names, val_ds, train_ds)
     net, norm, history, best = fitted
     if cfg.auto_select and run.is_main:
         selection["context"] = choose_context_paths(net, norm, ds.joint_names, cfg, train_ds, val_ds)
@@ -99,15 +98,24 @@ def in_memory_refit(cfg: TrainConfig):
     return refit
 
 
-def judge_with_fallback(cfg: TrainConfig, fitted: tuple, selection: dict, log, fit_again, judge, compare) -> tuple:
-    """``auto_select`` after the training: the residual of ``fitted`` = (net, norm, history, best)
-    judged by ``judge(net, norm, cfg)`` -> (network to keep, record). Beside a linear part of
+def judge_with_fallback(cfg: TrainConfig, fitted: tuple, selection: dict, log, fit_again, run: Runtime, joint_names,
+                        val_ds: DemoDataset | None, refit_ds: DemoDataset | None) -> tuple:
+    """``auto_select`` after the training: the residual of ``fitted`` = (net, norm, history, best) judged
+    on the validation demos ``val_ds`` (:func:`~deepprompt_ros.training.selection.judge_residual`, its
+    cross-validation on ``refit_ds`` by :func:`in_memory_refit`). Beside a linear part of
     ``cfg.linear_modes`` > 1 modes the training runs again with one (``fit_again(cfg)`` -> fitted), its
     residual is judged, and the modes are kept only if their residual was kept and
-    ``compare((net, norm) of the modes, (net, norm) of one mode, cfg)`` -> (keep the modes, record)
-    prefers them. The records go into ``selection``, the choices into one log line. Returns (the
-    configuration trained, with its residual scale; the fitted network, normalization, history and
-    best validation MSE)."""
+    :func:`~deepprompt_ros.training.selection.compare_modes` prefers them. The judgements are made on
+    process 0 of ``run`` and shared (``val_ds`` may be None elsewhere). The records go into
+    ``selection``, the choices into one log line. Returns (the configuration trained, with its residual
+    scale; the fitted network, normalization, history and best validation MSE)."""
+    def judge(n, nm, c):
+        return judge_on_main(run, n, lambda: judge_residual(n, nm, joint_names, val_ds, c, refit_ds,
+                                                            in_memory_refit(c)))
+
+    def compare(a, b, c):
+        return run.broadcast(compare_modes(a, b, joint_names, val_ds, c) if run.is_main else None)
+
     net, norm, history, best = fitted
     net, selection["residual"] = judge(net, norm, cfg)
     if cfg.linear_modes > 1:

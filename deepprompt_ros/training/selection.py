@@ -40,7 +40,8 @@ from deepprompt_ros.training.basis import basis_weights, cv_basis_hyperparameter
 from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.tensors import fit_normalization, to_tensors
 
-__all__ = ["select_linear_part", "nonlinear_dims", "judge_residual", "compare_modes", "choose_context_paths", "energy_score", "keep_residual", "without_residual",
+__all__ = ["select_linear_part", "nonlinear_dims", "judge_residual", "compare_modes", "choose_context_paths",
+           "energy_score", "keep_residual", "without_residual",
            "FALLBACK_LINEAR_PART", "RESIDUAL_VIA_POINTS", "RESIDUAL_DRAWS", "RESIDUAL_SAMPLES"]
 
 #: The linear part used when the training split has fewer than 3 demonstrations (nothing to
@@ -147,16 +148,10 @@ def judge_residual(net: DeepProMPNet, norm: Normalization, joint_names, val_ds: 
     else:
         es, mse = _residual_scores(net, norm, joint_names, val_ds, cfg, extras)
         judged = "validation demos"
-    scale = np.maximum(es[1].mean(1, keepdims=True), 1e-300)
-    keep, diff, se = keep_residual(es[0] / scale, es[1] / scale)
-    # the executed mean at the via-point sets must not get worse: relative MSE differences per demo
-    via_scale = max(float(mse[1, 1].mean()), 1e-300)
-    via = (mse[0, 1] - mse[1, 1]) / via_scale
-    via_diff, via_se = float(via.mean()), float(via.std(ddof=1) / np.sqrt(via.size)) if via.size >= 2 else 0.0
-    mean_ok = via_diff - via_se <= 0.0
+    keep, diff, se, via_diff, via_se, mean_ok = _prefer_first(es, mse)
     labels = ["start", f"{RESIDUAL_VIA_POINTS} via-points"] + (["start + contexts"] if extras else [])
-    record = {"kept": keep and mean_ok, "score": f"energy score of {RESIDUAL_SAMPLES} samples (whole trajectory, "
-                                                 "normalized joint units)",
+    record = {"kept": keep, "score": f"energy score of {RESIDUAL_SAMPLES} samples (whole trajectory, "
+                                     "normalized joint units)",
               "relative_difference": diff, "standard_error": se, "n_val": int(es.shape[2]), "judged_on": judged,
               "via_mean_relative_difference": via_diff, "via_mean_standard_error": via_se,
               "via_mean_ok": bool(mean_ok),
@@ -167,6 +162,21 @@ def judge_residual(net: DeepProMPNet, norm: Normalization, joint_names, val_ds: 
     if record["kept"]:
         return net, record
     return without_residual(net), record
+
+
+def _prefer_first(es: np.ndarray, mse: np.ndarray) -> tuple[bool, float, float, float, float, bool]:
+    """The rule of :func:`judge_residual` between two models from their scores (:func:`_pair_scores`:
+    index 0 the richer model, 1 the simpler): each conditioning's energy scores divided by the simpler
+    model's mean, :func:`keep_residual` on them, and the executed mean at the random via-point sets not
+    worse by more than one standard error (per-demo MSE differences relative to the simpler model's
+    mean). Returns (prefer the first, mean relative difference, its standard error, the via-point means'
+    relative difference, its standard error, whether the via-point means pass)."""
+    scale = np.maximum(es[1].mean(1, keepdims=True), 1e-300)
+    better, diff, se = keep_residual(es[0] / scale, es[1] / scale)
+    via = (mse[0, 1] - mse[1, 1]) / max(float(mse[1, 1].mean()), 1e-300)
+    via_diff, via_se = float(via.mean()), float(via.std(ddof=1) / np.sqrt(via.size)) if via.size >= 2 else 0.0
+    mean_ok = via_diff - via_se <= 0.0
+    return better and mean_ok, diff, se, via_diff, via_se, mean_ok
 
 
 def energy_score(samples: np.ndarray, y: np.ndarray) -> float:
@@ -240,11 +250,7 @@ def compare_modes(several: tuple[DeepProMPNet, Normalization], one: tuple[DeepPr
     them: a weak reference.) Returns (keep the modes, the record)."""
     extras = bool(val_ds.context_dims) or val_ds.image_shape is not None
     es, mse = _pair_scores(DeepProMP(*several, joint_names), DeepProMP(*one, joint_names), val_ds, cfg, extras)
-    scale = np.maximum(es[1].mean(1, keepdims=True), 1e-300)
-    better, diff, se = keep_residual(es[0] / scale, es[1] / scale)
-    via = (mse[0, 1] - mse[1, 1]) / max(float(mse[1, 1].mean()), 1e-300)
-    via_diff, via_se = float(via.mean()), float(via.std(ddof=1) / np.sqrt(via.size)) if via.size >= 2 else 0.0
-    keep = better and via_diff - via_se <= 0.0
+    keep, diff, se, via_diff, via_se, _ = _prefer_first(es, mse)
     return keep, {"kept_modes": bool(keep), "judged_on": "validation demos", "relative_difference": diff,
                   "standard_error": se, "via_mean_relative_difference": via_diff, "via_mean_standard_error": via_se,
                   "mse_modes": mse[0].mean(1).tolist(), "mse_one_mode": mse[1].mean(1).tolist()}

@@ -41,11 +41,11 @@ from deepprompt_ros.model.checkpoint import Normalization
 from deepprompt_ros.model.network import DeepProMPNet
 from deepprompt_ros.training.basis import ModeOffsets, basis_weights, init_basis_pca
 from deepprompt_ros.training.config import TrainConfig
-from deepprompt_ros.training.distributed import SINGLE, Runtime, judge_on_main, wrap
-from deepprompt_ros.training.loop import (in_memory_refit, judge_with_fallback, new_network, new_optimizer,
-                                          record_validation, write_model)
+from deepprompt_ros.training.distributed import SINGLE, Runtime, wrap
+from deepprompt_ros.training.loop import (judge_with_fallback, new_network, new_optimizer, record_validation,
+                                          write_model)
 from deepprompt_ros.training.objectives import encode_all, loss_fn
-from deepprompt_ros.training.selection import compare_modes, judge_residual, select_linear_part
+from deepprompt_ros.training.selection import select_linear_part
 from deepprompt_ros.training.tensors import TensorData, demos_to_tensors, to_tensors
 
 __all__ = ["train_sharded", "streaming_normalization", "ShardBatches", "chunked_validation_mse", "bounded_subset",
@@ -216,11 +216,9 @@ def train_sharded(ds: ShardedDataset, cfg: TrainConfig, out_path=None, log=print
     if cfg.auto_select:  # the residual's cross-validation, in memory on folds of the selection's demos
         val_ds = DemoDataset(tuple(ds.read(val_ids)), f"{ds.source}:val") if run.is_main else None
         fit_ds = select_ds() if images_for_refit else None
-        cfg, fitted = judge_with_fallback(
-            cfg, fitted, selection, log, lambda c: _fit(ds, train_ids, val_ids, select_ids, c, log, run),
-            lambda n, nm, c: judge_on_main(run, n, lambda: judge_residual(
-                n, nm, ds.joint_names, val_ds, c, fit_ds, in_memory_refit(c))),
-            lambda a, b, c: run.broadcast(compare_modes(a, b, ds.joint_names, val_ds, c) if run.is_main else None))
+        cfg, fitted = judge_with_fallback(cfg, fitted, selection, log,
+                                          lambda c: _fit(ds, train_ids, val_ids, select_ids, c, log, run),
+                                          run, ds.joint_names, val_ds, fit_ds)
         del val_ds, fit_ds
     net, norm, history, best = fitted
     if info is not None:
