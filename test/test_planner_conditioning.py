@@ -17,6 +17,7 @@ from deepprompt_ros.common.results import Code  # noqa: E402
 from deepprompt_ros.data.builtin import gen3_lite_reach  # noqa: E402
 from deepprompt_ros.primitive.deep_promp import DeepProMP  # noqa: E402
 from deepprompt_ros.primitive.latent import PLANNER_VIA_NOISE  # noqa: E402
+from deepprompt_ros.primitive.linear_conditioning import smallest_change  # noqa: E402
 from deepprompt_ros.robots.spec import load_robot  # noqa: E402
 from deepprompt_ros.server.config import ServerConfig, robot_limits  # noqa: E402
 from deepprompt_ros.server.primitives_file import PrimitiveEntry, load_primitive  # noqa: E402
@@ -158,3 +159,49 @@ def test_condition_refuses_overflow_and_invalid_arguments_with_what_is_expected(
             prim.condition([0.5], prim.mean_trajectory(prim.prior(), [0.5]), n_candidates=bad)
     ok = prim.condition([0.5], prim.mean_trajectory(prim.prior(), [0.5]) + 0.01)
     assert np.all(np.isfinite(ok.mean)) and np.all(np.isfinite(ok.var))
+
+
+def test_smallest_change_meets_the_rows_with_the_least_change_of_the_trajectory():
+    net = DeepProMP.from_checkpoint(str(SPLIT))._np
+    h = net.linear_design(np.array([0.1, 0.45, 0.8]))[1].reshape(-1, net.k_lin)  # 18 rows, 32-D block
+    r = np.random.default_rng(0).normal(0.0, 0.01, (2, h.shape[0]))
+    delta = smallest_change(net, h, r)
+    np.testing.assert_allclose(delta @ h.T, r, rtol=0, atol=1e-10)
+    metric = np.linalg.inv(net.trajectory_metric_inverse())
+    null = np.linalg.svd(h)[2][h.shape[0]:]  # directions that leave the rows unchanged
+    others = delta[0] + np.random.default_rng(1).normal(0.0, 0.01, (20, null.shape[0])) @ null
+    np.testing.assert_allclose(others @ h.T, np.broadcast_to(r[0], (20, h.shape[0])), rtol=0, atol=1e-10)
+    cost = np.einsum("ik,kl,il->i", others, metric, others)
+    assert np.all(cost > delta[0] @ metric @ delta[0])
+    # rows that cannot all be met (the same row twice with different values): refused, not a wild change
+    with np.errstate(invalid="ignore"):  # as condition() calls it
+        assert smallest_change(net, np.vstack([h[:1], h[:1]]), np.array([[0.0, 0.01]])) is None
+
+
+def test_the_planner_mean_smooths_noisy_via_points_then_meets_them_with_the_least_change():
+    """condition(..., smooth_noise): the posterior mean at the larger noise moved onto the via-points by
+    the smallest change of the trajectory; the distribution is the one at via_noise. The planner's
+    default is that with the model's own noise."""
+    prim = DeepProMP.from_checkpoint(str(SPLIT))
+    demo = gen3_lite_reach(seed=1001, n_demos=1).demos[0]
+    x = np.array([0.0, 0.2, 0.45, 0.7, 1.0])
+    y = demo.resampled(101)[np.round(x * 100).astype(int)] + np.random.default_rng(2).normal(0.0, 0.02, (5, 6))
+    grid = np.linspace(0.0, 1.0, 101)
+    soft = prim.condition(x, y, via_noise=0.05)
+    exact = prim.condition(x, y, via_noise=PLANNER_VIA_NOISE)
+    smooth = prim.condition(x, y, via_noise=PLANNER_VIA_NOISE, smooth_noise=0.05)
+    for lat in (exact, smooth):
+        assert np.abs(prim.mean_trajectory(lat, x) - y).max() <= 1e-6
+    assert np.abs(prim.mean_trajectory(soft, x) - y).max() > 1e-3  # the soft mean does not meet them
+    change = [np.linalg.norm(prim.mean_trajectory(lat, grid) - prim.mean_trajectory(soft, grid))
+              for lat in (smooth, exact)]
+    assert change[0] < change[1] - 1e-3, change  # the exact posterior mean meets them with a larger change
+    np.testing.assert_array_equal(smooth.var, exact.var)
+    np.testing.assert_array_equal(smooth.linear.chol, exact.linear.chol)
+    assert smooth.linear.via_error <= 1e-6
+    planned = prim.condition_planner(x, y)
+    np.testing.assert_allclose(planned.latent.mean, prim.condition(
+        x, y, via_noise=PLANNER_VIA_NOISE, smooth_noise=prim.cfg.via_noise).mean, rtol=0, atol=0)
+    np.testing.assert_allclose(prim.condition_planner(x, y, smooth=False).latent.mean, exact.mean, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="smooth_noise"):
+        prim.condition(x, y, smooth_noise=-1.0)

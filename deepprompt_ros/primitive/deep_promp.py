@@ -237,7 +237,7 @@ class DeepProMP:
                   contexts: Mapping[str, np.ndarray] | None = None,
                   context_weights: Mapping[str, Sequence[float]] | None = None,
                   images=None, image_weight: float = 1.0, via_noise: float | None = None,
-                  n_candidates: int = 32) -> LatentGaussian:
+                  n_candidates: int = 32, smooth_noise: float | None = None) -> LatentGaussian:
         """q(z | A, C, ω): Bayesian aggregation (paper Eq. 1 and the importance-weighted Eq. 3), and for
         a split latent (``latent_linear`` k_l > 0) exact Gaussian conditioning of z_lin on the via-points.
 
@@ -276,6 +276,12 @@ class DeepProMP:
             joint's normalization std); default ``ModelConfig.via_noise``.
         n_candidates : int
             Split latent: quasi-random points of z_nl besides the mean of its aggregation.
+        smooth_noise : float, optional
+            Split latent, a noise above ν (normalized joint units): the mean's z_lin is the posterior
+            mean at this noise moved by the smallest change of the trajectory that meets the via-points
+            as the posterior at ν does (:func:`~deepprompt_ros.primitive.linear_conditioning.smallest_change`);
+            the covariance and the candidates' weights are those at ν. None (default), or not above
+            ν: the posterior mean at ν.
         """
         noise = self.cfg.via_noise if via_noise is None else via_noise
         if isinstance(noise, bool) or not (isinstance(noise, (int, float, np.floating, np.integer))
@@ -284,9 +290,15 @@ class DeepProMP:
                              "units) or None (the model's own)")
         if isinstance(n_candidates, bool) or not isinstance(n_candidates, (int, np.integer)) or n_candidates < 0:
             raise ValueError(f"n_candidates = {n_candidates!r}: expected an integer >= 0")
+        if smooth_noise is not None and (isinstance(smooth_noise, bool) or not (
+                isinstance(smooth_noise, (int, float, np.floating, np.integer)) and math.isfinite(smooth_noise)
+                and smooth_noise > 0)):
+            raise ValueError(f"smooth_noise = {smooth_noise!r}: expected a finite standard deviation > 0 (normalized "
+                             "joint units) or None (the posterior mean at via_noise)")
+        smooth = None if smooth_noise is None or smooth_noise <= noise else float(smooth_noise)
         with np.errstate(over="ignore", invalid="ignore"):
             out = self._condition(via_x, via_y, via_weights, via_mask, contexts, context_weights, images,
-                                  image_weight, float(noise), int(n_candidates))
+                                  image_weight, float(noise), int(n_candidates), smooth)
         if not (np.isfinite(out.mean).all() and np.isfinite(out.var).all()):
             # finite but huge inputs (e.g. 1e308) overflow in the normalization, the aggregation or the
             # exact conditioning: refused with the values that caused it
@@ -306,7 +318,7 @@ class DeepProMP:
                           context_weights: Mapping[str, Sequence[float]] | None = None,
                           images=None, image_weight: float = 1.0, via_noise: float | None = PLANNER_VIA_NOISE,
                           tol: float = PLANNER_TOLERANCE, max_iterations: int = 200,
-                          time_budget: float | None = None) -> PlannerConditioning:
+                          time_budget: float | None = None, smooth: bool = True) -> PlannerConditioning:
         """Condition on a planner's via-points as the primitive server's default Condition request does
         (no Eq. 5 refinement asked for): :meth:`condition` with the planner's via-point noise, and for a
         split latent whose mean still misses a via-point by more than ``tol``, its linear block
@@ -331,6 +343,13 @@ class DeepProMP:
             Re-conditionings at most (each with the noise divided by 10).
         time_budget : float, optional
             Wall time (s) after which no further re-conditioning starts (None: no limit).
+        smooth : bool
+            Split latent: the mean first smooths the via-points as the model's own cross-validated
+            noise (``ModelConfig.via_noise``) does, then meets them by the smallest change of the
+            trajectory (:meth:`condition`'s ``smooth_noise``); the distribution around it is the one
+            at ``via_noise``. A via-point observed with noise is then not interpolated into the
+            whole trajectory. False, or when that mean misses a via-point by more than ``tol``: the
+            posterior mean at ``via_noise``.
 
         Returns
         -------
@@ -342,9 +361,15 @@ class DeepProMP:
             # no via-point: the aggregation of the rest
             via_x = via_y = via_weights = via_mask = None
         latent = self.condition(via_x, via_y, via_weights, via_mask, contexts, context_weights, images,
-                                image_weight, via_noise=via_noise)
+                                image_weight, via_noise=via_noise,
+                                smooth_noise=self.cfg.via_noise if smooth and self._split else None)
         if latent.linear is not None and latent.linear.via_error <= tol:
             return PlannerConditioning(latent, latent.linear.via_error, 0)
+        if smooth and self._split and via_x is not None:  # the smoothed mean missed: the posterior mean at via_noise
+            latent = self.condition(via_x, via_y, via_weights, via_mask, contexts, context_weights, images,
+                                    image_weight, via_noise=via_noise)
+            if latent.linear is not None and latent.linear.via_error <= tol:
+                return PlannerConditioning(latent, latent.linear.via_error, 0)
         if via_x is None:
             return PlannerConditioning(latent, 0.0, 0)
         x = self.check_phases(via_x, "via-point phase")
@@ -359,7 +384,7 @@ class DeepProMP:
         return PlannerConditioning(latent, error, 0)
 
     def _condition(self, via_x, via_y, via_weights, via_mask, contexts, context_weights, images, image_weight,
-                   noise: float, n_candidates: int) -> LatentGaussian:
+                   noise: float, n_candidates: int, smooth: float | None = None) -> LatentGaussian:
         """:meth:`condition` after its checks of ``via_noise`` and ``n_candidates`` (may overflow)."""
         mus, vars_, ws, context_rows = [], [], [], None
         if contexts:
@@ -398,7 +423,7 @@ class DeepProMP:
                 if mask is not None and not mask.all():
                     full = mask.all(1)
                     base = self._condition(x[full], y[full], w_enc[full], None, contexts, context_weights, images,
-                                           image_weight, noise, n_candidates)
+                                           image_weight, noise, n_candidates, smooth)
                     y_enc = np.where(mask, y, self.decode(base.mean, x))
                     w_enc = w_enc * mask.sum(1) / self.n_joints
                 mu, var = self.encode_via_points(x, y_enc)
@@ -411,7 +436,7 @@ class DeepProMP:
         has_via = via is not None and via[0].shape[0] and (observed is None or observed.any())
         if self._split and has_via and context_rows is None:
             return condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, *via[:3], observed, noise,
-                                   n_candidates)
+                                   n_candidates, smooth_noise=smooth)
         if self._split and context_rows is not None:
             # q(z | contexts, images) with the linear contexts' exact posterior of z_lin (its diagonal) is the
             # prior of MAP refinement and of the re-conditioning of refine_linear; without a via-point it is the
@@ -420,7 +445,7 @@ class DeepProMP:
                                   np.zeros((0, self.n_joints)), None, None, 1.0, 0 if has_via else n_candidates,
                                   context_rows=context_rows)
             lat = condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, *via[:3], observed, noise,
-                                  n_candidates, context_rows=context_rows) if has_via else ctx
+                                  n_candidates, context_rows=context_rows, smooth_noise=smooth) if has_via else ctx
             k_l = self.cfg.latent_linear
             return LatentGaussian(lat.mean, lat.var, linear=lat.linear,
                                   context_mean=np.concatenate([ctx.mean[:k_l], q_c.mean[k_l:]]),

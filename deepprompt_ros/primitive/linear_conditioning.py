@@ -19,8 +19,15 @@ q_all. See :meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.condition`.
 Numerics (float64): everything is whitened (rows divided by their noise, columns times the prior
 std), then factored by Cholesky — of I + G Gᵀ (M × M) when there are no more rows M than k_l, of the
 precision I + Gᵀ G (k_l × k_l) otherwise — and solved with the triangular factor; no inverse of an
-ill-conditioned matrix is formed (the information form's L⁻¹ is that of the whitened precision's
-Cholesky factor, whose condition number is the square root of the precision's).
+ill-conditioned matrix is formed (the L⁻¹ either form uses is that of the Cholesky factor, whose
+condition number is the square root of the factored matrix's).
+
+A planner's via-points (:meth:`~deepprompt_ros.primitive.deep_promp.DeepProMP.condition_planner`) are
+met exactly, but the points themselves carry the noise of the demonstrations they come from: the
+exact posterior mean interpolates that noise into the whole trajectory along the demonstrations'
+correlations. With ``smooth_noise`` the mean is instead the posterior mean at the model's
+cross-validated noise, moved onto the via-points by the smallest change of the trajectory
+(:func:`smallest_change`); the distribution around it stays the exact posterior's.
 
 Speed: the conditioning stays in numpy, one BLAS library with one pool of threads (a second
 library's pool stalls against numpy's on few cores). Its two LAPACK steps, the Cholesky factorization
@@ -44,8 +51,8 @@ from deepprompt_ros.primitive.latent import LatentGaussian, LinearBlock
 if TYPE_CHECKING:
     from deepprompt_ros.primitive.numpy_net import NumpyNet
 
-__all__ = ["whitened_posterior", "condition_split", "linear_block_variance", "SplitRefinement", "refine_split",
-           "TIE_TOLERANCE", "normal_points"]
+__all__ = ["whitened_posterior", "condition_split", "smallest_change", "linear_block_variance", "SplitRefinement",
+           "refine_split", "TIE_TOLERANCE", "normal_points"]
 
 #: Candidates of z_nl whose log posterior densities are within this relative amount of the best are
 #: tied (rounding, not evidence); the executed mean is the first of them, the mean of q_all(z_nl) when
@@ -53,7 +60,7 @@ __all__ = ["whitened_posterior", "condition_split", "linear_block_variance", "Sp
 TIE_TOLERANCE = 1e-9
 
 
-def whitened_posterior(g: np.ndarray, d: np.ndarray, with_loglik: bool = True
+def whitened_posterior(g: np.ndarray, d: np.ndarray, with_loglik: bool = True, gram: np.ndarray | None = None
                        ) -> tuple[str, np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
     """Posterior of u ~ N(0, I) given d_c = G u + e, e ~ N(0, I), for C right-hand sides at once.
 
@@ -63,6 +70,8 @@ def whitened_posterior(g: np.ndarray, d: np.ndarray, with_loglik: bool = True
     d : array, shape (C, M), the whitened residuals of C candidates
     with_loglik : bool
         Whether to compute ``loglik`` (a single candidate needs no weight).
+    gram : array, shape (M, M), optional
+        G Gᵀ when the caller has it (not modified).
 
     Returns
     -------
@@ -79,13 +88,13 @@ def whitened_posterior(g: np.ndarray, d: np.ndarray, with_loglik: bool = True
     if m == 0:
         return "observation", np.zeros((0, 0)), np.zeros((c, k)), np.zeros(c) if with_loglik else None, np.ones(k)
     if m <= k:
-        # one solve with the factor, L⁻¹ [G | dᵀ]: W = L⁻¹G gives Q = I − WᵀW, v = L⁻¹dᵀ gives
-        # u = Wᵀ v and dᵀ(I + GGᵀ)⁻¹d = ‖v‖²
-        s = g @ g.T
+        # the factor's inverse (one M × M call, cheaper than a solve with the k + C right-hand sides):
+        # W = L⁻¹G gives Q = I − WᵀW, v = L⁻¹dᵀ gives u = Wᵀ v and dᵀ(I + GGᵀ)⁻¹d = ‖v‖²
+        s = g @ g.T if gram is None else gram.copy()
         s.flat[::m + 1] += 1.0  # I + G Gᵀ
         chol = _cholesky(s)
-        wv = _lower_solve(chol, np.concatenate([g, d.T], 1))
-        w, v = wv[:, :k], wv[:, k:]
+        li = _umath_linalg.inv(chol, signature="d->d")
+        w, v = li @ g, li @ d.T
         qdiag = 1.0 - np.einsum("mk,mk->k", w, w)
         np.maximum(qdiag, 0.0, out=qdiag)
         loglik = -0.5 * np.einsum("mc,mc->c", v, v) if with_loglik else None
@@ -125,7 +134,14 @@ def _lower_solve(chol: np.ndarray, b: np.ndarray) -> np.ndarray:
     """L⁻¹ b for a Cholesky factor L (positive diagonal) and b (n, m): the array ``np.linalg.solve``
     gives (LAPACK gesv; numpy has no triangular solver, and the LU of a triangular matrix costs little
     beside the substitution), from the gufunc it calls, without its per-call checks."""
-    return _umath_linalg.solve(chol, b, signature="dd->d")
+    return _general_solve(chol, b)
+
+
+def _general_solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a⁻¹ b for a square non-singular ``a`` (n, n) and b (n, m), by the gufunc of ``np.linalg.solve``
+    (LAPACK gesv) without its per-call checks; a singular ``a`` gives inf or NaN (numpy's warning
+    unless invalid values are ignored)."""
+    return _umath_linalg.solve(a, b, signature="dd->d")
 
 
 _EPS_CACHE: dict[tuple[int, int, int], np.ndarray] = {}
@@ -185,7 +201,8 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
                     all_var: np.ndarray, x: np.ndarray, y: np.ndarray, w: np.ndarray, mask: np.ndarray,
                     noise: float, n_candidates: int = 32, seed: int = 0,
                     candidates_nl: np.ndarray | None = None,
-                    context_rows: tuple[np.ndarray, np.ndarray] | None = None) -> LatentGaussian:
+                    context_rows: tuple[np.ndarray, np.ndarray] | None = None,
+                    smooth_noise: float | None = None) -> LatentGaussian:
     """q(z) of a split latent: z_lin exactly conditioned on the via-points for each z_nl candidate.
 
     Parameters
@@ -212,6 +229,13 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
         Further observations of z_lin, e − G z_lin ~ N(0, I): the low-dimensional contexts modelled
         linearly (:meth:`deepprompt_ros.primitive.linear_context.LinearContext.rows`), conditioned on
         together with the via-points (which may then be none: x of shape (0,)).
+    smooth_noise : float, optional
+        A noise ν_s > ``noise``: each candidate's z_lin mean is then the posterior mean at ν_s (which
+        smooths the via-points' own noise as the cross-validated via_noise does) moved by the smallest
+        change of the trajectory that meets the via-points (:func:`smallest_change`), instead of the
+        posterior mean at ``noise``, which interpolates them. The covariance and the candidates' weights
+        stay those at ``noise``. Not used when there are more rows than k_l (the via-points cannot all
+        be met) or no via-point.
 
     Returns
     -------
@@ -255,8 +279,11 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
         g = np.concatenate([g, g_c * s], 0)
         d = np.concatenate([d, np.broadcast_to(e_c - g_c @ m, (d.shape[0], e_c.shape[0]))], 1)
     single = candidates_nl.shape[0] == 1
+    n_via = h.shape[0]
+    smooth = smooth_noise is not None and smooth_noise > noise and 0 < n_via <= k_l
+    gram = g @ g.T if smooth else None
     try:
-        form, chol, u, loglik, qdiag = whitened_posterior(g, d, with_loglik=not single)
+        form, chol, u, loglik, qdiag = whitened_posterior(g, d, with_loglik=not single, gram=gram)
     except np.linalg.LinAlgError as exc:  # I + GGᵀ is positive definite unless rounding or an overflow breaks it
         if not np.isfinite(g.sum() + d.sum()):
             return _overflow(net.cfg.latent_dim, context_mean, context_var)
@@ -279,7 +306,21 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
         log_w = log_post + 0.5 * ((candidates_nl - all_mean[k_l:]) ** 2 / all_var[k_l:]).sum(1)
         weights = np.exp(log_w - log_w.max())
         weights /= weights.sum()
-    cands = np.concatenate([m + u * s, candidates_nl], 1)  # (C, k)
+    z_lin = m + u * s  # (C, k_l)
+    if smooth:
+        # the via rows' whitening at ν_s: rows and residuals scale by f = ν / ν_s (the context rows stay)
+        f = noise / smooth_noise
+        if g.shape[0] == n_via:  # via rows only: one factor
+            scale, gram_s = f, gram * (f * f)
+        else:
+            scale = np.ones(g.shape[0])
+            scale[:n_via] = f
+            gram_s = gram * scale * scale[:, None]
+        z_s = m + _posterior_mean(g, d * scale, gram_s, scale) * s
+        moved = smallest_change(net, h, r - z_s @ h.T)
+        if moved is not None:
+            z_lin = z_s + moved
+    cands = np.concatenate([z_lin, candidates_nl], 1)  # (C, k)
     # the best candidate's mean at the observed joints of the via-points: offset + H z_lin (joint units)
     via_error = float(np.abs(r[best] - h @ cands[best, :k_l]).max()) if h.shape[0] else 0.0
     block = LinearBlock(scale=s, candidates=cands, weights=weights, chol=chol,
@@ -287,6 +328,32 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
                         via_error=via_error)
     var = np.concatenate([s ** 2 * qdiag, all_var[k_l:]])
     return LatentGaussian(cands[best].copy(), var, linear=block, context_mean=context_mean, context_var=context_var)
+
+
+def smallest_change(net: "NumpyNet", h: np.ndarray, residual: np.ndarray) -> np.ndarray | None:
+    """The changes Δ of z_lin that meet the via-point rows exactly with the smallest change of the
+    linear part's trajectory: argmin Δᵀ M Δ subject to H Δ = r, i.e. Δ = M⁻¹ Hᵀ (H M⁻¹ Hᵀ)⁻¹ r, with M
+    the trajectory metric (:meth:`NumpyNet.trajectory_metric_inverse`: squared change over the phases,
+    joint units, every joint).
+
+    A least-squares estimate of a trajectory from noisy points that must then pass them exactly pays
+    the least in squared error for the least change: the correction stays near the via-points, where
+    the exact posterior mean would interpolate the points' noise into the whole trajectory along the
+    demonstrations' correlations.
+
+    h : array, shape (M, k_l), the rows (joint units); residual : array, shape (C, M), per candidate
+    Returns (C, k_l), or None when H M⁻¹ Hᵀ is singular (rows that cannot all be met)."""
+    hm = h @ net.trajectory_metric_inverse()  # (M, k_l)
+    out = _general_solve(hm @ h.T, residual.T).T @ hm  # a singular H M⁻¹ Hᵀ gives inf / NaN: refused
+    return out if math.isfinite(out.sum()) else None
+
+
+def _posterior_mean(g: np.ndarray, d: np.ndarray, gram: np.ndarray, rows: np.ndarray | float) -> np.ndarray:
+    """(C, k) the posterior means G'ᵀ (I + G' G'ᵀ)⁻¹ d_c of :func:`whitened_posterior` alone for the
+    design G' = diag(rows) G (``rows`` (M,) or one factor), from ``gram`` = G' G'ᵀ (M × M, modified),
+    by one solve and no factor kept."""
+    gram.flat[::gram.shape[0] + 1] += 1.0
+    return (_general_solve(gram, d.T).T * rows) @ g
 
 
 def _overflow(k: int, context_mean: np.ndarray, context_var: np.ndarray) -> LatentGaussian:

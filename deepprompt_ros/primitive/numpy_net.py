@@ -22,7 +22,11 @@ from deepprompt_ros.model.checkpoint import Normalization
 from deepprompt_ros.model.network import LOGVAR_MAX, DeepProMPNet
 from deepprompt_ros.model.phase import phase_basis, phase_features
 
-__all__ = ["NumpyMLP", "NumpyNet"]
+__all__ = ["NumpyMLP", "NumpyNet", "METRIC_PHASES"]
+
+#: Phases (equally spaced on [0, 1]) on which :meth:`NumpyNet.trajectory_metric_inverse` measures a
+#: change of the trajectory.
+METRIC_PHASES = 101
 
 
 class NumpyMLP:
@@ -90,6 +94,21 @@ class NumpyNet:
         self._b3 = self._dec.b[2] * self.y_std + self.y_mean
         self._no_mlp = bool(nb) and self.cfg.residual_scale == 0.0  # s·MLP ≡ 0: skipped in decode_nonlinear
         self._pre_x_cache: dict[bytes, np.ndarray] = {}
+
+    def trajectory_metric_inverse(self) -> np.ndarray:
+        """(k_l, k_l) M⁻¹, M = Σ_t (Φ(x_t) A)ᵀ Φ(x_t) A over :data:`METRIC_PHASES` equally spaced phases
+        (joint units, all joints; a ridge of 1e-9 of its mean diagonal): ‖Φ A Δ‖² ≈ Δᵀ M Δ is the
+        squared change of the linear part's trajectory for a change Δ of z_lin. Computed once."""
+        mi = self.__dict__.get("_metric_inverse")
+        if mi is None:
+            _, lin_a = self.linear_design(np.linspace(0.0, 1.0, METRIC_PHASES))
+            rows = lin_a.reshape(-1, self.k_lin)
+            m = rows.T @ rows
+            m.flat[::self.k_lin + 1] += 1e-9 * max(float(np.trace(m)) / max(self.k_lin, 1), 1e-300)
+            mi = np.linalg.inv(m)
+            mi.flags.writeable = False
+            self._metric_inverse = mi
+        return mi
 
     @property
     def mlp_reads_z_nl(self) -> bool:
