@@ -34,11 +34,12 @@ from deepprompt_ros.model.checkpoint import Checkpoint, Normalization, load_chec
 from deepprompt_ros.model.network import DeepProMPNet
 from deepprompt_ros.primitive.blending import blend_gaussians
 from deepprompt_ros.primitive.inputs import check_images, check_phases, check_weights
-from deepprompt_ros.primitive.latent import PLANNER_TOLERANCE, PLANNER_VIA_NOISE, LatentGaussian
+from deepprompt_ros.primitive.latent import (PLANNER_CHANGE_BOUND, PLANNER_TOLERANCE, PLANNER_VIA_NOISE,
+                                            LatentGaussian)
 from deepprompt_ros.primitive.linear_context import LinearContext
 from deepprompt_ros.primitive.linear_conditioning import (SplitRefinement, condition_split, linear_block_variance,
                                                           refine_split)
-from deepprompt_ros.primitive.numpy_net import NumpyNet
+from deepprompt_ros.primitive.numpy_net import METRIC_PHASES, NumpyNet
 from deepprompt_ros.primitive.refinement import RefinementResult, refine_exact, refine_map
 
 __all__ = ["DeepProMP", "PlannerConditioning"]
@@ -63,11 +64,14 @@ class PlannerConditioning:
     iterations : int
         How many times the linear block was conditioned again with a smaller noise (0: met by the
         first conditioning, or a plain latent).
+    reason : str
+        How the latent was obtained (why the via-points were not met, when they were not).
     """
 
     latent: LatentGaussian
     via_error: float
     iterations: int
+    reason: str = ""
 
 
 class DeepProMP:
@@ -351,37 +355,63 @@ class DeepProMP:
             whole trajectory. False, or when that mean misses a via-point by more than ``tol``: the
             posterior mean at ``via_noise``.
 
+        Split latent, via-points not met by either mean: the linear block conditioned again
+        (:meth:`refine_linear`). Whatever meets the via-points (or comes closest) is returned only if
+        it stays within :data:`~deepprompt_ros.primitive.latent.PLANNER_CHANGE_BOUND` times the
+        largest miss (at least ``tol``) of the posterior at the model's own noise, max over phases and
+        joints; else that posterior is returned with its error: many close via-points with noise can be
+        met only by a trajectory that oscillates between them.
+
         Returns
         -------
         PlannerConditioning; ``via_error`` > ``tol`` says the via-points were not met (the linear
-        block cannot meet them, or a budget ended the re-conditioning), never a silent miss.
+        block cannot meet them, cannot meet them without that oscillation, or a budget ended the
+        re-conditioning) and ``reason`` says which, never a silent miss.
         """
         self._check_budgets(tol, max_iterations, time_budget)
         if via_x is not None and via_y is not None and np.size(via_x) == 0 == np.size(via_y):
             # no via-point: the aggregation of the rest
             via_x = via_y = via_weights = via_mask = None
-        latent = self.condition(via_x, via_y, via_weights, via_mask, contexts, context_weights, images,
-                                image_weight, via_noise=via_noise,
-                                smooth_noise=self.cfg.via_noise if smooth and self._split else None)
+        inputs = (via_x, via_y, via_weights, via_mask, contexts, context_weights, images, image_weight)
+        own = self.cfg.via_noise
+        softer = self._split and via_x is not None and via_noise is not None and own > via_noise
+        latent = self.condition(*inputs, via_noise=via_noise, smooth_noise=own if smooth and softer else None)
         if latent.linear is not None and latent.linear.via_error <= tol:
-            return PlannerConditioning(latent, latent.linear.via_error, 0)
-        if smooth and self._split and via_x is not None:  # the smoothed mean missed: the posterior mean at via_noise
-            latent = self.condition(via_x, via_y, via_weights, via_mask, contexts, context_weights, images,
-                                    image_weight, via_noise=via_noise)
-            if latent.linear is not None and latent.linear.via_error <= tol:
-                return PlannerConditioning(latent, latent.linear.via_error, 0)
+            return PlannerConditioning(latent, latent.linear.via_error, 0, "met by the conditioning")
         if via_x is None:
-            return PlannerConditioning(latent, 0.0, 0)
+            return PlannerConditioning(latent, 0.0, 0, "no via-point")
         x = self.check_phases(via_x, "via-point phase")
         y = self.check_positions(via_y, x.shape[0])
         active = check_weights(via_weights, x.shape[0], "via-points") > 0
         x, y, mask = x[active], y[active], self.check_mask(via_mask, x.shape[0])[active]
-        if latent.linear is not None:
+
+        def error(lat):
+            return float(np.abs((self.decode(lat.mean, x) - y)[mask]).max()) if mask.any() else 0.0
+
+        if latent.linear is None:
+            return PlannerConditioning(latent, error(latent), 0, "a plain latent: the aggregation as it is")
+        if smooth and softer:  # the smoothed mean missed: the posterior mean at via_noise
+            latent = self.condition(*inputs, via_noise=via_noise)
+        if latent.linear.via_error <= tol:
+            out = PlannerConditioning(latent, latent.linear.via_error, 0, "met by the exact posterior mean")
+        else:
             res = self.refine_linear(latent, x, y, mask, tol=tol, max_iterations=max_iterations,
                                      time_budget=time_budget)
-            return PlannerConditioning(res.latent, res.max_error, res.iterations)
-        error = float(np.abs((self.decode(latent.mean, x) - y)[mask]).max()) if mask.any() else 0.0
-        return PlannerConditioning(latent, error, 0)
+            out = PlannerConditioning(res.latent, res.max_error, res.iterations, res.reason)
+        if not softer:
+            return out
+        soft = self.condition(*inputs)  # the posterior at the model's own noise
+        soft_error = error(soft)
+        grid = np.linspace(0.0, 1.0, METRIC_PHASES)
+        change = float(np.abs(self.mean_trajectory(out.latent, grid) - self.mean_trajectory(soft, grid)).max())
+        if change <= PLANNER_CHANGE_BOUND * max(soft_error, tol):
+            return out
+        return PlannerConditioning(
+            soft, soft_error, out.iterations,
+            f"meeting the via-points ({out.reason}: max error {out.via_error:.3g} rad) moves the trajectory up to "
+            f"{change:.3g} rad from the posterior at the model's via-point noise {own:g}, more than "
+            f"{PLANNER_CHANGE_BOUND:g} times that posterior's largest miss {soft_error:.3g} rad (an oscillation "
+            "between close via-points); that posterior is given instead")
 
     def _condition(self, via_x, via_y, via_weights, via_mask, contexts, context_weights, images, image_weight,
                    noise: float, n_candidates: int, smooth: float | None = None) -> LatentGaussian:

@@ -13,7 +13,7 @@ import dataclasses
 
 import numpy as np
 
-__all__ = ["LatentGaussian", "LinearBlock", "PLANNER_VIA_NOISE", "PLANNER_TOLERANCE"]
+__all__ = ["LatentGaussian", "LinearBlock", "PLANNER_VIA_NOISE", "PLANNER_TOLERANCE", "PLANNER_CHANGE_BOUND"]
 
 #: The standard deviation of a planner's via-point in the exact conditioning of a split latent
 #: (normalized joint units: rad / the joint's normalization std). A via-point a planner asks for is a
@@ -26,6 +26,13 @@ PLANNER_VIA_NOISE = 1e-7
 #: :meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.condition_planner`: the primitive server's
 #: default (parameter ``refine_tolerance``).
 PLANNER_TOLERANCE = 1e-6
+
+#: How far (max over phases and joints) meeting a planner's via-points may move the trajectory from
+#: the posterior mean at the model's own via-point noise, in multiples of that mean's largest miss at
+#: the via-points. Via-points that would need more — a basis made to interpolate many close, noisy
+#: points oscillates between them — are not met: the planner gets that posterior and its error
+#: (:meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.condition_planner`).
+PLANNER_CHANGE_BOUND = 100.0
 
 
 def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -46,7 +46,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.linalg import _umath_linalg
 
-from deepprompt_ros.primitive.latent import LatentGaussian, LinearBlock
+from deepprompt_ros.primitive.latent import PLANNER_CHANGE_BOUND, LatentGaussian, LinearBlock
 
 if TYPE_CHECKING:
     from deepprompt_ros.primitive.numpy_net import NumpyNet
@@ -235,7 +235,9 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
         change of the trajectory that meets the via-points (:func:`smallest_change`), instead of the
         posterior mean at ``noise``, which interpolates them. The covariance and the candidates' weights
         stay those at ``noise``. Not used when there are more rows than k_l (the via-points cannot all
-        be met) or no via-point.
+        be met) or no via-point. When the best candidate's change would exceed
+        :data:`~deepprompt_ros.primitive.latent.PLANNER_CHANGE_BOUND` times its largest miss, no
+        candidate is moved: the means stay at ν_s and miss the via-points (``via_error`` says by how much).
 
     Returns
     -------
@@ -317,9 +319,15 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
             scale[:n_via] = f
             gram_s = gram * scale * scale[:, None]
         z_s = m + _posterior_mean(g, d * scale, gram_s, scale) * s
-        moved = smallest_change(net, h, r - z_s @ h.T)
-        if moved is not None:
+        miss = r - z_s @ h.T
+        moved = smallest_change(net, h, miss)
+        # a correction that would move the trajectory by more than PLANNER_CHANGE_BOUND times the smoothed
+        # mean's largest miss is not made: the mean stays the smoothed one, which misses the via-points
+        if moved is not None and (float(np.abs(net.trajectory_rows() @ moved[best]).max())
+                                  <= PLANNER_CHANGE_BOUND * float(np.abs(miss[best]).max())):
             z_lin = z_s + moved
+        else:
+            z_lin = z_s
     cands = np.concatenate([z_lin, candidates_nl], 1)  # (C, k)
     # the best candidate's mean at the observed joints of the via-points: offset + H z_lin (joint units)
     via_error = float(np.abs(r[best] - h @ cands[best, :k_l]).max()) if h.shape[0] else 0.0

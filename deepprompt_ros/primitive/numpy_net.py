@@ -101,14 +101,24 @@ class NumpyNet:
         squared change of the linear part's trajectory for a change Δ of z_lin. Computed once."""
         mi = self.__dict__.get("_metric_inverse")
         if mi is None:
-            _, lin_a = self.linear_design(np.linspace(0.0, 1.0, METRIC_PHASES))
-            rows = lin_a.reshape(-1, self.k_lin)
+            rows = self.trajectory_rows()
             m = rows.T @ rows
             m.flat[::self.k_lin + 1] += 1e-9 * max(float(np.trace(m)) / max(self.k_lin, 1), 1e-300)
             mi = np.linalg.inv(m)
             mi.flags.writeable = False
             self._metric_inverse = mi
         return mi
+
+    def trajectory_rows(self) -> np.ndarray:
+        """(METRIC_PHASES · d, k_l) Φ(x_t) A at the :data:`METRIC_PHASES` phases, rows (phase, joint): the
+        change of the linear part's trajectory for a change of z_lin (joint units). Computed once."""
+        rows = self.__dict__.get("_trajectory_rows")
+        if rows is None:
+            rows = np.ascontiguousarray(self.linear_design(np.linspace(0.0, 1.0, METRIC_PHASES))[1]
+                                        .reshape(-1, self.k_lin))
+            rows.flags.writeable = False
+            self._trajectory_rows = rows
+        return rows
 
     @property
     def mlp_reads_z_nl(self) -> bool:

@@ -314,7 +314,9 @@ class PrimitiveServerCore:
                    + (f"; refined in {iterations} iterations" if req.refine and active.any() else "")
                    + (f"; linear block conditioned again {iterations} times with a smaller via-point noise"
                       if exact and iterations and not req.refine else "")
-                   + f"; max via-point error {max_err:.3g} rad")
+                   + f"; max via-point error {max_err:.3g} rad"
+                   + (f" > tolerance {tol:g} rad, not met: {planned.reason}" if not req.refine and not reachable
+                      else ""))
         return ConditionResult(code, msg, handle, expires, preview, max_err, iterations, reachable)
 
     # ------------------------------------------------------------------ Blend
