@@ -60,9 +60,10 @@ class TrainConfig:
                                     "on the validation demos (with linear_modes > 1 the training with "
                                     "linear_modes 1 runs too and the modes are kept only if better there), and "
                                     "the low-dim contexts conditioned through their joint linear Gaussian model "
-                                    "of z_lin or through the encoders alone, whichever "
-                                    "reconstructs the validation demos better (in-memory training; a sharded "
-                                    "dataset keeps the encoders); the file's values of those keys are not used. "
+                                    "of z_lin, or through the encoders alone where they reconstruct the "
+                                    "validation demos better by more than one standard error (in-memory "
+                                    "training; a sharded dataset keeps the encoders); the file's values of "
+                                    "those keys are not used. "
                                     "false: every key as given")
     latent_nonlinear: int = param(8, "with auto_select: k_n, the latent dimensions only the MLP reads (the "
                                      "nonlinear block that can hold several modes) when the demos form one mode; "

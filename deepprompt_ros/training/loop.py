@@ -287,4 +287,6 @@ def context_line(record: dict) -> str:
     if "reason" in record:
         return f"contexts: encoders only ({record['reason']})"
     rel = ", ".join(f"{k} {v:.3g}" for k, v in record["relative"].items())
-    return f"contexts: {record['chosen']} (validation MSE relative to the encoders': {rel})"
+    ev = record.get("encoders_vs_linear")
+    paired = (f"; encoders minus linear {ev['difference']:+.3g} ± {ev['standard_error']:.3g}" if ev else "")
+    return f"contexts: {record['chosen']} (validation MSE relative to the encoders': {rel}{paired})"

@@ -291,8 +291,10 @@ def choose_context_paths(net: DeepProMPNet, norm: Normalization, joint_names, cf
     learned encoders alone, and with the linear model and images whether the images' encodings still
     inform z_lin. The candidates are scored on the validation demos reconstructed from their first point
     and every context (``low_dim``, the server's default path) and, with images, from those and the
-    images (``image+low``): the mean over those conditionings of the MSE relative to the encoders'; the
-    lowest wins (the encoders on a tie).
+    images (``image+low``): per demo, the mean over those conditionings of the MSE relative to the
+    encoders' mean. The linear model (the best of its candidates) is the default — ProMP's joint Gaussian
+    of trajectory and context, in the latent —; the encoders replace it only when their mean is lower by
+    more than one standard error of the paired per-demo difference (the rule of :func:`keep_residual`).
 
     Returns the record ``selection["context"]``: ``linear`` (the model's JSON when kept, else None) and
     ``images_inform_z_lin`` — what :class:`~deepprompt_ros.primitive.deep_promp.DeepProMP` reads —,
@@ -315,23 +317,33 @@ def choose_context_paths(net: DeepProMPNet, norm: Normalization, joint_names, cf
         candidates["linear model"]["images_inform_z_lin"] = True
         candidates["linear model, images on z_nl"] = {"linear": model.to_json(), "images_inform_z_lin": False}
 
-    def val_mse(record) -> dict:
+    def val_mse(record) -> np.ndarray:
+        """(conditionings, validation demos) MSE, rad²."""
         prim = DeepProMP(net, norm, joint_names, name="selection", metadata={"selection": {"context": record}})
-        out = {}
-        for c in conds:
-            errs = []
-            for d in val_ds.demos:
+        out = np.zeros((len(conds), len(val_ds)))
+        for j, c in enumerate(conds):
+            for i, d in enumerate(val_ds.demos):
                 y = d.resampled(cfg.n_points)
                 lat = prim.condition_planner(x[:1], y[:1], contexts=dict(d.contexts),
                                              images=d.images if c == "image+low" else None).latent
-                errs.append(float(((prim.decode(lat.mean, x) - y) ** 2).mean()))
-            out[c] = float(np.mean(errs))
+                out[j, i] = float(((prim.decode(lat.mean, x) - y) ** 2).mean())
         return out
 
-    table = {k: val_mse(rec) for k, rec in candidates.items()}
-    rel = {k: float(np.mean([v[c] / max(table["encoders"][c], 1e-300) for c in conds])) for k, v in table.items()}
-    best = min(rel, key=lambda k: (rel[k], k != "encoders"))
+    per_demo = {k: val_mse(rec) for k, rec in candidates.items()}
+    scale = np.maximum(per_demo["encoders"].mean(1, keepdims=True), 1e-300)
+    rel_demo = {k: (v / scale).mean(0) for k, v in per_demo.items()}  # (val demos,) relative to the encoders' mean
+    rel = {k: float(v.mean()) for k, v in rel_demo.items()}
+    best_linear = min((k for k in rel if k != "encoders"), key=lambda k: rel[k])
+    # the contexts' linear model (ProMP's joint Gaussian of trajectory and context, in the latent) unless the
+    # encoders reconstruct the validation demos better by more than one standard error of the paired difference
+    diff = rel_demo["encoders"] - rel_demo[best_linear]
+    se = float(diff.std(ddof=1) / np.sqrt(diff.size)) if diff.size >= 2 else 0.0
+    best = "encoders" if float(diff.mean()) + se < 0.0 else best_linear
+    table = {k: {c: float(v[j].mean()) for j, c in enumerate(conds)} for k, v in per_demo.items()}
     return {**candidates[best], "chosen": best, "validation": table, "relative": rel,
+            "encoders_vs_linear": {"difference": float(diff.mean()), "standard_error": se},
             "method": f"joint linear Gaussian model of the contexts {list(names)} on z_lin of the {len(train_ds)} "
-                      f"training demonstrations against the encoders: mean MSE relative to the encoders' over "
-                      f"{' and '.join(conds)} of the {len(val_ds)} validation demonstrations"}
+                      f"training demonstrations against the encoders: per-demo MSE relative to the encoders' mean "
+                      f"over {' and '.join(conds)} of the {len(val_ds)} validation demonstrations; the best linear "
+                      f"candidate unless the encoders' is lower by more than one standard error of the paired "
+                      f"difference"}
