@@ -180,9 +180,14 @@ def test_smallest_change_meets_the_rows_with_the_least_change_of_the_trajectory(
     net = DeepProMP.from_checkpoint(str(SPLIT))._np
     h = net.linear_design(np.array([0.1, 0.45, 0.8]))[1].reshape(-1, net.k_lin)  # 18 rows, 32-D block
     r = np.random.default_rng(0).normal(0.0, 0.01, (2, h.shape[0]))
-    delta = smallest_change(net, h, r)
+    delta, sq = smallest_change(net, h, r)
     np.testing.assert_allclose(delta @ h.T, r, rtol=0, atol=1e-10)
     metric = np.linalg.inv(net.trajectory_metric_inverse())
+    np.testing.assert_allclose(sq, np.einsum("ik,kl,il->i", delta, metric, delta), rtol=1e-8)
+    np.testing.assert_allclose(net.metric_design(np.array([0.1, 0.45, 0.8])).reshape(-1, net.k_lin),
+                               h @ net.trajectory_metric_inverse(), rtol=1e-10, atol=1e-12)
+    rows = net.trajectory_rows()  # the squared change over the phases: the metric without its ridge
+    assert np.all(np.sum((delta @ rows.T) ** 2, 1) <= sq)
     null = np.linalg.svd(h)[2][h.shape[0]:]  # directions that leave the rows unchanged
     others = delta[0] + np.random.default_rng(1).normal(0.0, 0.01, (20, null.shape[0])) @ null
     np.testing.assert_allclose(others @ h.T, np.broadcast_to(r[0], (20, h.shape[0])), rtol=0, atol=1e-10)

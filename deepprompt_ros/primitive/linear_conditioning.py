@@ -60,8 +60,9 @@ __all__ = ["whitened_posterior", "condition_split", "smallest_change", "linear_b
 TIE_TOLERANCE = 1e-9
 
 
-def whitened_posterior(g: np.ndarray, d: np.ndarray, with_loglik: bool = True, gram: np.ndarray | None = None
-                       ) -> tuple[str, np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
+def whitened_posterior(g: np.ndarray, d: np.ndarray, with_loglik: bool = True, gram: np.ndarray | None = None,
+                       with_mean: bool = True) -> tuple[str, np.ndarray, np.ndarray | None, np.ndarray | None,
+                                                        np.ndarray]:
     """Posterior of u ~ N(0, I) given d_c = G u + e, e ~ N(0, I), for C right-hand sides at once.
 
     Parameters
@@ -72,6 +73,8 @@ def whitened_posterior(g: np.ndarray, d: np.ndarray, with_loglik: bool = True, g
         Whether to compute ``loglik`` (a single candidate needs no weight).
     gram : array, shape (M, M), optional
         G Gᵀ when the caller has it (not modified).
+    with_mean : bool
+        False: ``u`` is None in the observation form (a caller that computes its own mean).
 
     Returns
     -------
@@ -94,11 +97,12 @@ def whitened_posterior(g: np.ndarray, d: np.ndarray, with_loglik: bool = True, g
         s.flat[::m + 1] += 1.0  # I + G Gᵀ
         chol = _cholesky(s)
         li = _umath_linalg.inv(chol, signature="d->d")
-        w, v = li @ g, li @ d.T
+        w = li @ g
+        v = li @ d.T if with_loglik or with_mean else None
         qdiag = 1.0 - np.einsum("mk,mk->k", w, w)
         np.maximum(qdiag, 0.0, out=qdiag)
         loglik = -0.5 * np.einsum("mc,mc->c", v, v) if with_loglik else None
-        return "observation", chol, (w.T @ v).T, loglik, qdiag
+        return "observation", chol, (w.T @ v).T if with_mean else None, loglik, qdiag
     # information form: L⁻¹ [I | Gᵀdᵀ] gives Q = L⁻ᵀL⁻¹ and u = L⁻ᵀ L⁻¹ Gᵀ d
     p = g.T @ g
     p.flat[::k + 1] += 1.0  # I + Gᵀ G
@@ -283,9 +287,13 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
     single = candidates_nl.shape[0] == 1
     n_via = h.shape[0]
     smooth = smooth_noise is not None and smooth_noise > noise and 0 < n_via <= k_l
+    if smooth:  # H M⁻¹ (rows as h) for smallest_change
+        hm = (net.metric_design(x).reshape(-1, k_l) if mask is None or mask.all() else
+              net.metric_design(x[mask.any(1)])[mask[mask.any(1)]])
     gram = g @ g.T if smooth else None
     try:
-        form, chol, u, loglik, qdiag = whitened_posterior(g, d, with_loglik=not single, gram=gram)
+        form, chol, u, loglik, qdiag = whitened_posterior(g, d, with_loglik=not single, gram=gram,
+                                                          with_mean=not smooth)
     except np.linalg.LinAlgError as exc:  # I + GGᵀ is positive definite unless rounding or an overflow breaks it
         if not np.isfinite(g.sum() + d.sum()):
             return _overflow(net.cfg.latent_dim, context_mean, context_var)
@@ -293,7 +301,7 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
                          f"{noise:g}: expected via-points of the size of the training data and a noise of at least "
                          "about 1e-10 (normalized joint units)") from None
     # an overflow in G or d ends here (or in the factorization)
-    if not np.isfinite(u.sum() if single else loglik.sum() + u.sum()):
+    if u is not None and not math.isfinite(u.sum() + (0.0 if single else loglik.sum())):
         return _overflow(net.cfg.latent_dim, context_mean, context_var)
     if single:
         weights, best = np.ones(1), 0
@@ -308,8 +316,9 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
         log_w = log_post + 0.5 * ((candidates_nl - all_mean[k_l:]) ** 2 / all_var[k_l:]).sum(1)
         weights = np.exp(log_w - log_w.max())
         weights /= weights.sum()
-    z_lin = m + u * s  # (C, k_l)
-    if smooth:
+    if not smooth:
+        z_lin = m + u * s  # (C, k_l)
+    else:
         # the via rows' whitening at ν_s: rows and residuals scale by f = ν / ν_s (the context rows stay)
         f = noise / smooth_noise
         if g.shape[0] == n_via:  # via rows only: one factor
@@ -320,14 +329,18 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
             gram_s = gram * scale * scale[:, None]
         z_s = m + _posterior_mean(g, d * scale, gram_s, scale) * s
         miss = r - z_s @ h.T
-        moved = smallest_change(net, h, miss)
+        moved = smallest_change(net, h, miss, hm)
         # a correction that would move the trajectory by more than PLANNER_CHANGE_BOUND times the smoothed
-        # mean's largest miss is not made: the mean stays the smoothed one, which misses the via-points
-        if moved is not None and (float(np.abs(net.trajectory_rows() @ moved[best]).max())
-                                  <= PLANNER_CHANGE_BOUND * float(np.abs(miss[best]).max())):
-            z_lin = z_s + moved
+        # mean's largest miss is not made: the mean stays the smoothed one, which misses the via-points.
+        # ‖L Δ‖∞ <= ‖L Δ‖₂ <= sqrt(Δᵀ M Δ): within the bound without forming L Δ when the last one is
+        bound = PLANNER_CHANGE_BOUND * float(np.abs(miss[best]).max())
+        if moved is not None and (math.sqrt(max(moved[1][best], 0.0)) <= bound or
+                                  float(np.abs(net.trajectory_rows() @ moved[0][best]).max()) <= bound):
+            z_lin = z_s + moved[0]
         else:
             z_lin = z_s
+        if not math.isfinite(z_lin.sum() + qdiag.sum() + (0.0 if single else loglik.sum())):
+            return _overflow(net.cfg.latent_dim, context_mean, context_var)
     cands = np.concatenate([z_lin, candidates_nl], 1)  # (C, k)
     # the best candidate's mean at the observed joints of the via-points: offset + H z_lin (joint units)
     via_error = float(np.abs(r[best] - h @ cands[best, :k_l]).max()) if h.shape[0] else 0.0
@@ -338,7 +351,8 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
     return LatentGaussian(cands[best].copy(), var, linear=block, context_mean=context_mean, context_var=context_var)
 
 
-def smallest_change(net: "NumpyNet", h: np.ndarray, residual: np.ndarray) -> np.ndarray | None:
+def smallest_change(net: "NumpyNet", h: np.ndarray, residual: np.ndarray,
+                    hm: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
     """The changes Δ of z_lin that meet the via-point rows exactly with the smallest change of the
     linear part's trajectory: argmin Δᵀ M Δ subject to H Δ = r, i.e. Δ = M⁻¹ Hᵀ (H M⁻¹ Hᵀ)⁻¹ r, with M
     the trajectory metric (:meth:`NumpyNet.trajectory_metric_inverse`: squared change over the phases,
@@ -349,11 +363,15 @@ def smallest_change(net: "NumpyNet", h: np.ndarray, residual: np.ndarray) -> np.
     the exact posterior mean would interpolate the points' noise into the whole trajectory along the
     demonstrations' correlations.
 
-    h : array, shape (M, k_l), the rows (joint units); residual : array, shape (C, M), per candidate
-    Returns (C, k_l), or None when H M⁻¹ Hᵀ is singular (rows that cannot all be met)."""
-    hm = h @ net.trajectory_metric_inverse()  # (M, k_l)
-    out = _general_solve(hm @ h.T, residual.T).T @ hm  # a singular H M⁻¹ Hᵀ gives inf / NaN: refused
-    return out if math.isfinite(out.sum()) else None
+    h : array, shape (M, k_l), the rows (joint units); residual : array, shape (C, M), per candidate;
+    hm : array, shape (M, k_l), optional, H M⁻¹ when the caller has it (:meth:`NumpyNet.metric_design`)
+    Returns (Δ (C, k_l), Δᵀ M Δ (C,) = rᵀ (H M⁻¹ Hᵀ)⁻¹ r), or None when H M⁻¹ Hᵀ is singular (rows that
+    cannot all be met)."""
+    if hm is None:
+        hm = h @ net.trajectory_metric_inverse()  # (M, k_l)
+    lam = _general_solve(hm @ h.T, residual.T).T  # (C, M); a singular H M⁻¹ Hᵀ gives inf / NaN: refused
+    out = lam @ hm
+    return (out, np.einsum("cm,cm->c", lam, residual)) if math.isfinite(out.sum()) else None
 
 
 def _posterior_mean(g: np.ndarray, d: np.ndarray, gram: np.ndarray, rows: np.ndarray | float) -> np.ndarray:

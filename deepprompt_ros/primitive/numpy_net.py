@@ -109,6 +109,17 @@ class NumpyNet:
             self._metric_inverse = mi
         return mi
 
+    def metric_design(self, x: np.ndarray) -> np.ndarray:
+        """Φ(x) A M⁻¹ at phases x (n,), shape (n, d, k_l): :meth:`linear_design`'s matrix times
+        :meth:`trajectory_metric_inverse`, from Φ(x) and A M⁻¹ (computed once)."""
+        am = self.__dict__.get("_metric_rows")
+        if am is None:
+            am = np.ascontiguousarray((self._basis_A @ self.trajectory_metric_inverse()).reshape(
+                self._basis_A.shape[0], -1))
+            am.flags.writeable = False
+            self._metric_rows = am
+        return (self._phi(x) @ am).reshape(-1, *self._basis_A.shape[1:])
+
     def trajectory_rows(self) -> np.ndarray:
         """(METRIC_PHASES · d, k_l) Φ(x_t) A at the :data:`METRIC_PHASES` phases, rows (phase, joint): the
         change of the linear part's trajectory for a change of z_lin (joint units). Computed once."""
