@@ -254,3 +254,21 @@ def test_close_noisy_via_points_get_the_smoothed_posterior_not_an_oscillation():
             exact = prim.condition(x, y, via_noise=PLANNER_VIA_NOISE)
             assert np.abs(prim.mean_trajectory(exact, grid) - prim.mean_trajectory(soft, grid)).max() > \
                 PLANNER_CHANGE_BOUND * soft_miss or exact.linear.via_error > 1e-6
+
+
+def test_a_partial_via_point_is_smoothed_and_met_on_its_constrained_joints():
+    """The smoothed mean with a joint mask (and a via-point of weight 0) meets exactly the joints it
+    constrains; the free joints and the weightless via-point are not pulled onto their values."""
+    prim = DeepProMP.from_checkpoint(str(SPLIT))
+    demo = gen3_lite_reach(seed=1001, n_demos=1).demos[0]
+    x = np.array([0.0, 0.3, 0.6, 0.9])
+    y = demo.resampled(101)[np.round(x * 100).astype(int)] + np.random.default_rng(4).normal(0.0, 0.02, (4, 6))
+    mask = np.ones((4, 6), dtype=bool)
+    mask[1, 3:] = False
+    weights = np.array([1.0, 1.0, 1.0, 0.0])
+    lat = prim.condition(x, y, via_weights=weights, via_mask=mask, via_noise=PLANNER_VIA_NOISE, smooth_noise=0.05)
+    err = np.abs(prim.mean_trajectory(lat, x) - y)
+    assert err[:3][mask[:3]].max() <= 1e-6 and lat.linear.via_error <= 1e-6
+    assert err[1][~mask[1]].max() > 1e-3 and err[3].max() > 1e-3
+    planned = prim.condition_planner(x, y, via_weights=weights, via_mask=mask)
+    assert planned.via_error <= 1e-6, planned.reason

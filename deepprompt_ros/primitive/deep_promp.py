@@ -410,8 +410,9 @@ class DeepProMP:
             soft, soft_error, out.iterations,
             f"meeting the via-points ({out.reason}: max error {out.via_error:.3g} rad) moves the trajectory up to "
             f"{change:.3g} rad from the posterior at the model's via-point noise {own:g}, more than "
-            f"{PLANNER_CHANGE_BOUND:g} times that posterior's largest miss {soft_error:.3g} rad (an oscillation "
-            "between close via-points); that posterior is given instead")
+            f"{PLANNER_CHANGE_BOUND:g} times that posterior's largest miss {soft_error:.3g} rad (a swing such as an "
+            "oscillation between close via-points, or via-points far from what the linear block spans); that "
+            "posterior is given instead")
 
     def _condition(self, via_x, via_y, via_weights, via_mask, contexts, context_weights, images, image_weight,
                    noise: float, n_candidates: int, smooth: float | None = None) -> LatentGaussian:
