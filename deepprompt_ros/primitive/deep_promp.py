@@ -303,7 +303,8 @@ class DeepProMP:
         with np.errstate(over="ignore", invalid="ignore"):
             out = self._condition(via_x, via_y, via_weights, via_mask, contexts, context_weights, images,
                                   image_weight, float(noise), int(n_candidates), smooth)
-        if not math.isfinite(float(out.mean.sum()) + float(out.var.sum())):  # a NaN or inf in either
+            finite = math.isfinite(float(out.mean.sum()) + float(out.var.sum()))  # no NaN or inf in either
+        if not finite:
             # finite but huge inputs (e.g. 1e308) overflow in the normalization, the aggregation or the
             # exact conditioning: refused with the values that caused it
             vy = np.abs(np.asarray(via_y, dtype=np.float64)) if via_y is not None else np.zeros(1)
