@@ -336,12 +336,11 @@ def choose_context_paths(net: DeepProMPNet, norm: Normalization, joint_names, cf
     best_linear = min((k for k in rel if k != "encoders"), key=lambda k: rel[k])
     # the contexts' linear model (ProMP's joint Gaussian of trajectory and context, in the latent) unless the
     # encoders reconstruct the validation demos better by more than one standard error of the paired difference
-    diff = rel_demo["encoders"] - rel_demo[best_linear]
-    se = float(diff.std(ddof=1) / np.sqrt(diff.size)) if diff.size >= 2 else 0.0
-    best = "encoders" if float(diff.mean()) + se < 0.0 else best_linear
+    better, diff, se = keep_residual(rel_demo["encoders"][None], rel_demo[best_linear][None])
+    best = "encoders" if better else best_linear
     table = {k: {c: float(v[j].mean()) for j, c in enumerate(conds)} for k, v in per_demo.items()}
     return {**candidates[best], "chosen": best, "validation": table, "relative": rel,
-            "encoders_vs_linear": {"difference": float(diff.mean()), "standard_error": se},
+            "encoders_vs_linear": {"difference": diff, "standard_error": se},
             "method": f"joint linear Gaussian model of the contexts {list(names)} on z_lin of the {len(train_ds)} "
                       f"training demonstrations against the encoders: per-demo MSE relative to the encoders' mean "
                       f"over {' and '.join(conds)} of the {len(val_ds)} validation demonstrations; the best linear "
