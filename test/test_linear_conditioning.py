@@ -4,6 +4,7 @@ here — the linear part the PPCA of synthetic demonstrations (training.basis.pc
 or built by hand to make two modes. Also: partial via-points and MAP refinement of plain latents,
 and a plain latent's numbers unchanged on the shipped reach model."""
 import pathlib
+import pickle
 import time
 
 import numpy as np
@@ -95,6 +96,26 @@ def test_the_linear_block_is_textbook_gaussian_conditioning(n_via):
     np.testing.assert_allclose(np.cov(z.T), lat.linear.cov(), atol=0.03 * lat.linear.cov().diagonal().max())
 
 
+def test_a_split_latent_computes_its_variance_when_read_and_stays_immutable():
+    """The conditioning keeps the covariance as its factor; ``var`` read later is the diagonal of the
+    full covariance, then z_nl's proposal variance; the latent cannot be changed and survives pickling."""
+    prim, x, Y = split_model(k_l=12, k_n=2, nb=6, rs=0.2)
+    xv, yv = random_via_points(np.random.default_rng(5), x, Y, 2)
+    lat = prim.condition(xv, yv, via_noise=0.05)
+    assert lat._var is None  # not computed by the conditioning
+    agg = prim.aggregate(*prim.encode_via_points(xv, yv), np.ones(2))  # q_all: the z_nl proposal
+    np.testing.assert_allclose(lat.var, np.concatenate([np.diag(lat.linear.cov()), agg.var[12:]]), rtol=1e-10,
+                               atol=1e-14)
+    assert lat.var is lat.var  # computed once
+    with pytest.raises(AttributeError, match="immutable"):
+        lat.mean = np.zeros(14)
+    back = pickle.loads(pickle.dumps(lat))
+    np.testing.assert_array_equal(back.var, lat.var)
+    np.testing.assert_array_equal(back.mean, lat.mean)
+    with pytest.raises(ValueError, match="needs its variance"):
+        LatentGaussian(np.zeros(3))
+
+
 @pytest.mark.parametrize("rs", [0.0, 0.2], ids=["no_mlp", "mlp"])
 def test_no_weights_and_no_mask_give_the_latent_of_weights_1_and_every_joint(rs):
     """Without weights or a mask the conditioning skips weighing and selecting rows: the same numbers as
@@ -118,8 +139,10 @@ def test_the_factorizations_are_numpys_and_a_matrix_not_positive_definite_is_ref
     rng = np.random.default_rng(7)
     for m, k in ((6, 12), (24, 12)):  # observation and information form
         g, d = rng.normal(0, 3.0, (m, k)), rng.normal(0, 3.0, (3, m))
-        form, chol, u, loglik, qdiag = whitened_posterior(g, d)
+        form, chol, u, loglik = whitened_posterior(g, d)
         a = g @ g.T + np.eye(m) if form == "observation" else g.T @ g + np.eye(k)
+        # u = (I + GᵀG)⁻¹ Gᵀ d directly
+        np.testing.assert_allclose(u, np.linalg.solve(g.T @ g + np.eye(k), g.T @ d.T).T, rtol=1e-10, atol=1e-12)
         np.testing.assert_array_equal(chol, np.linalg.cholesky(a))
         b = rng.normal(size=(a.shape[0], 5))
         np.testing.assert_array_equal(_lower_solve(chol, b), np.linalg.solve(chol, b))
@@ -129,7 +152,7 @@ def test_the_factorizations_are_numpys_and_a_matrix_not_positive_definite_is_ref
         np.testing.assert_allclose(loglik, direct, rtol=1e-12)
         without = whitened_posterior(g, d, with_loglik=False)
         assert without[3] is None
-        for got, want in zip(without[1:3] + without[4:], (chol, u, qdiag)):
+        for got, want in zip(without[1:3], (chol, u)):
             np.testing.assert_array_equal(got, want)
     with np.errstate(invalid="ignore"), pytest.raises(np.linalg.LinAlgError, match="not positive definite"):
         _cholesky(np.array([[1.0, 2.0], [2.0, 1.0]]))

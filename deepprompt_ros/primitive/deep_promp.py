@@ -303,7 +303,7 @@ class DeepProMP:
         with np.errstate(over="ignore", invalid="ignore"):
             out = self._condition(via_x, via_y, via_weights, via_mask, contexts, context_weights, images,
                                   image_weight, float(noise), int(n_candidates), smooth)
-            finite = math.isfinite(float(out.mean.sum()) + float(out.var.sum()))  # no NaN or inf in either
+            finite = out.is_finite()  # no NaN or inf in the mean or the variance
         if not finite:
             # finite but huge inputs (e.g. 1e308) overflow in the normalization, the aggregation or the
             # exact conditioning: refused with the values that caused it
@@ -479,9 +479,8 @@ class DeepProMP:
             lat = condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, *via[:3], observed, noise,
                                   n_candidates, context_rows=context_rows, smooth_noise=smooth) if has_via else ctx
             k_l = self.cfg.latent_linear
-            return LatentGaussian(lat.mean, lat.var, linear=lat.linear,
-                                  context_mean=np.concatenate([ctx.mean[:k_l], q_c.mean[k_l:]]),
-                                  context_var=np.concatenate([ctx.var[:k_l], q_c.var[k_l:]]))
+            return lat.with_context(np.concatenate([ctx.mean[:k_l], q_c.mean[k_l:]]),
+                                    np.concatenate([ctx.var[:k_l], q_c.var[k_l:]]))
         # no observed joint of a via-point of weight > 0: the aggregation is the distribution
         return LatentGaussian(q_all.mean, q_all.var, context_mean=q_c.mean, context_var=q_c.var)
 

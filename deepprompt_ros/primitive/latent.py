@@ -10,6 +10,7 @@ posterior mean of z_lin, and the full posterior covariance of z_lin, shared by e
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 
@@ -73,6 +74,8 @@ class LinearBlock:
     via_error : float
         Max |mean − via-point| (joint units) of the ``mean`` latent over the observed joints of the
         via-points it was conditioned on (of weight > 0).
+    nl_var : array, shape (k − k_l,)
+        The variance of q(z_nl), the candidates' proposal.
     """
 
     scale: np.ndarray
@@ -83,6 +86,7 @@ class LinearBlock:
     form: str
     noise: float
     via_error: float
+    nl_var: np.ndarray
 
     @property
     def k_lin(self) -> int:
@@ -91,10 +95,23 @@ class LinearBlock:
     def whitened_var(self) -> np.ndarray:
         """diag Q, shape (k_l,)."""
         if self.form == "observation":
-            w = _solve(self.chol, self.design)  # (M, k_l): Q = I − Wᵀ W
-            return np.clip(1.0 - (w * w).sum(0), 0.0, 1.0)
+            if self.design.shape[0] == 0:
+                return np.ones(self.k_lin)
+            w = np.linalg.inv(self.chol) @ self.design  # (M, k_l) W = L⁻¹G: Q = I − Wᵀ W
+            return np.clip(1.0 - np.einsum("mk,mk->k", w, w), 0.0, 1.0)
         li = _solve(self.chol, np.eye(self.k_lin))  # L⁻¹: Q = L⁻ᵀ L⁻¹
         return (li * li).sum(0)
+
+    def variance(self) -> np.ndarray:
+        """The diagonal of the latent's covariance, shape (k,): scale² diag Q, then ``nl_var``."""
+        return np.concatenate([self.scale ** 2 * self.whitened_var(), self.nl_var])
+
+    def is_finite(self) -> bool:
+        """Whether the factors the covariance is computed from hold no NaN or inf."""
+        total = float(self.chol.sum()) + float(self.scale.sum()) + float(self.nl_var.sum())
+        if self.design is not None:
+            total += float(self.design.sum())
+        return math.isfinite(total)
 
     def cov(self) -> np.ndarray:
         """The full posterior covariance of z_lin, diag(scale) Q diag(scale), shape (k_l, k_l)."""
@@ -133,15 +150,15 @@ class LinearBlock:
         return z
 
 
-@dataclasses.dataclass(frozen=True)
 class LatentGaussian:
-    """q(z) = N(mean, diag(var)), the conditioned latent distribution of a primitive.
+    """q(z) = N(mean, diag(var)), the conditioned latent distribution of a primitive (immutable).
 
     ``mean`` is the latent the robot executes and ``var`` the diagonal summary that blending (paper
     Eq. 4) and the server's handles use. With ``linear`` set (a split latent), ``mean`` is the
     candidate of the highest posterior density with its z_lin posterior mean, ``var`` the diagonal of the z_lin
     posterior covariance and the variance of q(z_nl) (the candidates' proposal); sampling and the
-    full covariance come from ``linear``.
+    full covariance come from ``linear``. A split latent made without ``var`` computes it from
+    ``linear`` when it is first read (executing the mean needs only ``mean``).
 
     Attributes
     ----------
@@ -153,11 +170,45 @@ class LatentGaussian:
         prior of MAP refinement, whose likelihood holds the via-points. None: not recorded.
     """
 
-    mean: np.ndarray
-    var: np.ndarray
-    linear: LinearBlock | None = None
-    context_mean: np.ndarray | None = None
-    context_var: np.ndarray | None = None
+    __slots__ = ("mean", "_var", "linear", "context_mean", "context_var")
+
+    def __init__(self, mean: np.ndarray, var: np.ndarray | None = None, linear: LinearBlock | None = None,
+                 context_mean: np.ndarray | None = None, context_var: np.ndarray | None = None):
+        if var is None and linear is None:
+            raise ValueError("a latent distribution needs its variance var, or a linear block to compute it from")
+        for name, value in (("mean", mean), ("_var", var), ("linear", linear), ("context_mean", context_mean),
+                            ("context_var", context_var)):
+            object.__setattr__(self, name, value)
+
+    def __setattr__(self, name, value):
+        raise AttributeError(f"LatentGaussian is immutable: cannot set '{name}'")
+
+    def __reduce__(self):
+        return LatentGaussian, (self.mean, self._var, self.linear, self.context_mean, self.context_var)
+
+    def __repr__(self) -> str:
+        return (f"LatentGaussian(mean={self.mean!r}, var={self.var!r}, linear={self.linear!r}, "
+                f"context_mean={self.context_mean!r}, context_var={self.context_var!r})")
+
+    @property
+    def var(self) -> np.ndarray:
+        v = self._var
+        if v is None:  # (two threads may both compute it: the same array)
+            v = self.linear.variance()
+            object.__setattr__(self, "_var", v)
+        return v
+
+    def with_context(self, context_mean: np.ndarray | None, context_var: np.ndarray | None) -> "LatentGaussian":
+        """The same distribution recording another q_c(z) (``context_mean``, ``context_var``)."""
+        return LatentGaussian(self.mean, self._var, self.linear, context_mean, context_var)
+
+    def is_finite(self) -> bool:
+        """Whether mean and variance hold no NaN or inf (a variance not yet computed: its factors)."""
+        if not math.isfinite(float(self.mean.sum())):
+            return False
+        if self._var is None:
+            return self.linear.is_finite()
+        return math.isfinite(float(self._var.sum()))
 
     @property
     def std(self) -> np.ndarray:

@@ -61,8 +61,7 @@ TIE_TOLERANCE = 1e-9
 
 
 def whitened_posterior(g: np.ndarray, d: np.ndarray, with_loglik: bool = True, gram: np.ndarray | None = None,
-                       with_mean: bool = True) -> tuple[str, np.ndarray, np.ndarray | None, np.ndarray | None,
-                                                        np.ndarray]:
+                       with_mean: bool = True) -> tuple[str, np.ndarray, np.ndarray | None, np.ndarray | None]:
     """Posterior of u ~ N(0, I) given d_c = G u + e, e ~ N(0, I), for C right-hand sides at once.
 
     Parameters
@@ -79,42 +78,38 @@ def whitened_posterior(g: np.ndarray, d: np.ndarray, with_loglik: bool = True, g
     Returns
     -------
     form : "observation" (M <= k) or "information"
-    chol : array, lower Cholesky factor L of I + G Gᵀ (M, M) or of I + Gᵀ G (k, k)
-    u : array, shape (C, k), the posterior means (I + GᵀG)⁻¹ Gᵀ d_c
+    chol : array, lower Cholesky factor L of I + G Gᵀ (M, M) or of I + Gᵀ G (k, k): the posterior
+        covariance Q = (I + GᵀG)⁻¹ (:meth:`~deepprompt_ros.primitive.latent.LinearBlock.whitened_var`)
+    u : array, shape (C, k), the posterior means (I + GᵀG)⁻¹ Gᵀ d_c = Gᵀ (I + GGᵀ)⁻¹ d_c
     loglik : array, shape (C,), or None without ``with_loglik``
         −½ d_cᵀ (I + G Gᵀ)⁻¹ d_c = −½ (‖d_c − G u_c‖² + ‖u_c‖²): the log marginal likelihood of d_c
         up to the term −½ log det(I + G Gᵀ) every candidate shares.
-    qdiag : array, shape (k,), the diagonal of the posterior covariance Q = (I + GᵀG)⁻¹
     """
     m, k = g.shape
     c = d.shape[0]
     if m == 0:
-        return "observation", np.zeros((0, 0)), np.zeros((c, k)), np.zeros(c) if with_loglik else None, np.ones(k)
+        return "observation", np.zeros((0, 0)), np.zeros((c, k)), np.zeros(c) if with_loglik else None
     if m <= k:
-        # the factor's inverse (one M × M call, cheaper than a solve with the k + C right-hand sides):
-        # W = L⁻¹G gives Q = I − WᵀW, v = L⁻¹dᵀ gives u = Wᵀ v and dᵀ(I + GGᵀ)⁻¹d = ‖v‖²
         s = g @ g.T if gram is None else gram.copy()
         s.flat[::m + 1] += 1.0  # I + G Gᵀ
-        chol = _cholesky(s)
-        li = _umath_linalg.inv(chol, signature="d->d")
-        w = li @ g
-        v = li @ d.T if with_loglik or with_mean else None
-        qdiag = 1.0 - np.einsum("mk,mk->k", w, w)
-        np.maximum(qdiag, 0.0, out=qdiag)
-        loglik = -0.5 * np.einsum("mc,mc->c", v, v) if with_loglik else None
-        return "observation", chol, (w.T @ v).T if with_mean else None, loglik, qdiag
-    # information form: L⁻¹ [I | Gᵀdᵀ] gives Q = L⁻ᵀL⁻¹ and u = L⁻ᵀ L⁻¹ Gᵀ d
+        chol = _cholesky(s)  # (kept for the covariance; a matrix that is not positive definite is refused here)
+        u = loglik = None
+        if with_mean or with_loglik:
+            a = _general_solve(s, d.T)  # (M, C) (I + GGᵀ)⁻¹ dᵀ
+            u = (g.T @ a).T if with_mean else None
+            loglik = -0.5 * np.einsum("cm,mc->c", d, a) if with_loglik else None
+        return "observation", chol, u, loglik
+    # information form: L⁻¹ [Gᵀdᵀ] gives u = L⁻ᵀ L⁻¹ Gᵀ d
     p = g.T @ g
     p.flat[::k + 1] += 1.0  # I + Gᵀ G
     chol = _cholesky(p)
-    lv = _lower_solve(chol, np.concatenate([np.eye(k), g.T @ d.T], 1))
-    li, v = lv[:, :k], lv[:, k:]
-    u = (li.T @ v).T
+    v = _lower_solve(chol, g.T @ d.T)
+    u = _general_solve(chol.T, v).T
     loglik = None
     if with_loglik:
         res = d - u @ g.T
         loglik = -0.5 * (np.einsum("cm,cm->c", res, res) + np.einsum("ck,ck->c", u, u))
-    return "information", chol, u, loglik, np.einsum("jk,jk->k", li, li)
+    return "information", chol, u, loglik
 
 
 def _cholesky(a: np.ndarray) -> np.ndarray:
@@ -292,8 +287,7 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
               net.metric_design(x[mask.any(1)])[mask[mask.any(1)]])
     gram = g @ g.T if smooth else None
     try:
-        form, chol, u, loglik, qdiag = whitened_posterior(g, d, with_loglik=not single, gram=gram,
-                                                          with_mean=not smooth)
+        form, chol, u, loglik = whitened_posterior(g, d, with_loglik=not single, gram=gram, with_mean=not smooth)
     except np.linalg.LinAlgError as exc:  # I + GGᵀ is positive definite unless rounding or an overflow breaks it
         if not np.isfinite(g.sum() + d.sum()):
             return _overflow(net.cfg.latent_dim, context_mean, context_var)
@@ -339,16 +333,16 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
             z_lin = z_s + moved[0]
         else:
             z_lin = z_s
-        if not math.isfinite(z_lin.sum() + qdiag.sum() + (0.0 if single else loglik.sum())):
+        if not math.isfinite(z_lin.sum() + (0.0 if single else loglik.sum())):
             return _overflow(net.cfg.latent_dim, context_mean, context_var)
     cands = np.concatenate([z_lin, candidates_nl], 1)  # (C, k)
     # the best candidate's mean at the observed joints of the via-points: offset + H z_lin (joint units)
     via_error = float(np.abs(r[best] - h @ cands[best, :k_l]).max()) if h.shape[0] else 0.0
     block = LinearBlock(scale=s, candidates=cands, weights=weights, chol=chol,
                         design=g if form == "observation" else None, form=form, noise=float(noise),
-                        via_error=via_error)
-    var = np.concatenate([s ** 2 * qdiag, all_var[k_l:]])
-    return LatentGaussian(cands[best].copy(), var, linear=block, context_mean=context_mean, context_var=context_var)
+                        via_error=via_error, nl_var=all_var[k_l:])
+    # (the variance: from the block when it is read)
+    return LatentGaussian(cands[best].copy(), linear=block, context_mean=context_mean, context_var=context_var)
 
 
 def smallest_change(net: "NumpyNet", h: np.ndarray, residual: np.ndarray,
