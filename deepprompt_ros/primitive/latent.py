@@ -193,7 +193,7 @@ class LatentGaussian:
     @property
     def var(self) -> np.ndarray:
         v = self._var
-        if v is None:  # (two threads may both compute it: the same array)
+        if v is None:  # (two threads may both compute it: equal arrays, either kept)
             v = self.linear.variance()
             object.__setattr__(self, "_var", v)
         return v

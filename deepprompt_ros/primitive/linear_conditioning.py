@@ -18,9 +18,11 @@ q_all. See :meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.condition`.
 
 Numerics (float64): everything is whitened (rows divided by their noise, columns times the prior
 std), then factored by Cholesky — of I + G Gᵀ (M × M) when there are no more rows M than k_l, of the
-precision I + Gᵀ G (k_l × k_l) otherwise — and solved with the triangular factor; no inverse of an
-ill-conditioned matrix is formed (the L⁻¹ either form uses is that of the Cholesky factor, whose
-condition number is the square root of the factored matrix's).
+precision I + Gᵀ G (k_l × k_l) otherwise. The information form solves with the triangular factor; the
+observation form solves for the mean with I + G Gᵀ itself (LU, one call) and keeps the factor for the
+covariance, which is computed only when it is read (:meth:`~deepprompt_ros.primitive.latent.LinearBlock.variance`).
+No inverse of an ill-conditioned matrix is formed (the L⁻¹ the covariance uses is that of the Cholesky
+factor, whose condition number is the square root of the factored matrix's).
 
 A planner's via-points (:meth:`~deepprompt_ros.primitive.deep_promp.DeepProMP.condition_planner`) are
 met exactly, but the points themselves carry the noise of the demonstrations they come from: the
@@ -30,9 +32,9 @@ cross-validated noise, moved onto the via-points by the smallest change of the t
 (:func:`smallest_change`); the distribution around it stays the exact posterior's.
 
 Speed: the conditioning stays in numpy, one BLAS library with one pool of threads (a second
-library's pool stalls against numpy's on few cores). Its two LAPACK steps, the Cholesky factorization
-and the solve with the factor, call numpy's gufuncs directly in :func:`_cholesky` and
-:func:`_lower_solve`, the one seam that does: ``np.linalg``'s per-call checks cost more than these
+library's pool stalls against numpy's on few cores). Its LAPACK steps, the Cholesky factorization
+and the solves, call numpy's gufuncs directly in :func:`_cholesky`, :func:`_lower_solve` and
+:func:`_general_solve`, the one seam that does: ``np.linalg``'s per-call checks cost more than these
 small factorizations (bench_core's ``condition_ratio``); a test compares the two paths.
 """
 from __future__ import annotations
@@ -104,7 +106,7 @@ def whitened_posterior(g: np.ndarray, d: np.ndarray, with_loglik: bool = True, g
     p.flat[::k + 1] += 1.0  # I + Gᵀ G
     chol = _cholesky(p)
     v = _lower_solve(chol, g.T @ d.T)
-    u = _general_solve(chol.T, v).T
+    u = _general_solve(chol.T, v).T  # Lᵀ is upper triangular: the LU of gesv is Lᵀ itself (no pivoting)
     loglik = None
     if with_loglik:
         res = d - u @ g.T
@@ -441,6 +443,8 @@ def refine_split(net: "NumpyNet", latent: LatentGaussian, x: np.ndarray, y: np.n
     history = [best_err]
     noise, it, reason = latent.linear.noise, 0, "met by the exact conditioning"
     cands = latent.linear.candidates[:, k_l:]
+    # q_all's z_nl variance, all condition_split reads of it (the z_lin part of the latent's var is not needed)
+    all_var = np.concatenate([latent.context_var[:k_l], latent.linear.nl_var])
     while best_err > tol:
         if it >= max_iterations:
             reason = "budget"
@@ -456,7 +460,7 @@ def refine_split(net: "NumpyNet", latent: LatentGaussian, x: np.ndarray, y: np.n
         it += 1
         try:
             with np.errstate(all="ignore"):
-                lat = condition_split(net, latent.context_mean, latent.context_var, latent.mean, latent.var, x, y,
+                lat = condition_split(net, latent.context_mean, latent.context_var, latent.mean, all_var, x, y,
                                       None, mask, noise, candidates_nl=cands)
             err = error(lat)
         except ValueError:  # the factorization failed at this noise
