@@ -16,7 +16,8 @@ from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
 from deepprompt_ros.model.phase import phase_basis
 from deepprompt_ros.training.basis import (MODE_DIP, basis_weights, mode_dip, pca_basis, weight_modes)
 from deepprompt_ros.training.config import TrainConfig
-from deepprompt_ros.training.loop import train
+from deepprompt_ros.training.distributed import Runtime
+from deepprompt_ros.training.loop import judge_with_fallback, train
 from deepprompt_ros.training.selection import compare_modes, select_linear_part
 from deepprompt_ros.training.tensors import fit_normalization
 
@@ -170,3 +171,38 @@ def test_modes_are_kept_over_one_mode_only_where_they_score_better():
     assert keep and rec["relative_difference"] + rec["standard_error"] < 0, rec
     keep, rec = compare_modes(one, (several.net, several.norm), ["a", "b"], val, cfg)
     assert not keep and rec["relative_difference"] > 0, rec
+
+
+@pytest.mark.parametrize("judge_modes", [False, True])
+def test_judge_modes_false_keeps_modes_whose_residual_is_kept_without_the_training_with_one_mode(judge_modes):
+    """With ``judge_modes`` false the two-mode model whose residual the validation keeps is served as it
+    is: no training with one mode runs and the record says why; true: that training runs."""
+    from test_linear_conditioning import bimodal_model
+    several, x = bimodal_model()
+    _, y_val = _bimodal_demos(12, 2)
+    val = DemoDataset(tuple(demo_from_arrays(f"v{i}", x * 4.0, y_val[i], ["a", "b"]) for i in range(len(y_val))))
+    cfg = TrainConfig(n_points=50, linear_modes=2, judge_modes=judge_modes, latent_dim=17, decoder_basis=8,
+                      latent_linear=16)
+    selection = {"linear_part": {"decoder_basis": 8, "latent_linear": 16, "latent_dim": 17, "basis_cov_reg": 0.05,
+                                 "basis_cov_reg_units": "normalized", "via_noise": 1e-3, "method": "by hand",
+                                 "linear_modes": 2}}
+    calls, lines = [], []
+
+    def fit_again(c):
+        calls.append(c.linear_modes)
+        raise RuntimeError("the training with one mode")
+
+    def run():
+        return judge_with_fallback(cfg, (several.net, several.norm, [], 0.0), selection, lines.append, fit_again,
+                                   Runtime(), ["a", "b"], val, None)
+
+    if judge_modes:
+        with pytest.raises(RuntimeError, match="one mode"):
+            run()
+        assert calls == [1]
+        return
+    out_cfg, (net, _, _, _) = run()
+    assert calls == [] and selection["residual"]["kept"] and net is several.net
+    assert out_cfg.linear_modes == 2 and out_cfg.residual_scale == several.net.cfg.residual_scale
+    assert selection["modes_fallback"]["kept_modes"] and "judge_modes false" in selection["modes_fallback"]["reason"]
+    assert "linear_modes 2 (judge_modes false" in lines[-1]

@@ -69,6 +69,10 @@ class TrainConfig:
                                      "nonlinear block that can hold several modes) when the demos form one mode; "
                                      "with linear_modes K > 1 the block has K - 1 dimensions, the offsets between "
                                      "the modes", min=1)
+    judge_modes: bool = param(True, "with auto_select and K > 1 modes found: true = the training with "
+                                    "linear_modes 1 runs too and the modes are kept only if better there; false = "
+                                    "the modes are kept as the demos' basis weights show them when their residual "
+                                    "is kept (no training with one mode)")
     cv_folds: int = param(5, "with auto_select: folds of the cross-validation (at most one per training "
                              "demonstration)", min=2)
     residual_folds: int = param(0, "with auto_select: 0 = judge the MLP residual on the validation demos; K >= 2 "

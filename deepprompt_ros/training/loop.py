@@ -105,7 +105,8 @@ def judge_with_fallback(cfg: TrainConfig, fitted: tuple, selection: dict, log, f
     cross-validation on ``refit_ds`` by :func:`in_memory_refit`). Beside a linear part of
     ``cfg.linear_modes`` > 1 modes the training runs again with one (``fit_again(cfg)`` -> fitted), its
     residual is judged, and the modes are kept only if their residual was kept and
-    :func:`~deepprompt_ros.training.selection.compare_modes` prefers them. The judgements are made on
+    :func:`~deepprompt_ros.training.selection.compare_modes` prefers them (with ``cfg.judge_modes`` false,
+    modes whose residual was kept are kept without that training). The judgements are made on
     process 0 of ``run`` and shared (``val_ds`` may be None elsewhere). The records go into
     ``selection``, the choices into one log line. Returns (the configuration trained, with its residual
     scale; the fitted network, normalization, history and best validation MSE)."""
@@ -118,7 +119,10 @@ def judge_with_fallback(cfg: TrainConfig, fitted: tuple, selection: dict, log, f
 
     net, norm, history, best = fitted
     net, selection["residual"] = judge(net, norm, cfg)
-    if cfg.linear_modes > 1:
+    if cfg.linear_modes > 1 and not cfg.judge_modes and selection["residual"]["kept"]:
+        selection["modes_fallback"] = {"linear_modes": cfg.linear_modes, "kept_modes": True,
+                                       "reason": "judge_modes false: kept without the training with one mode"}
+    elif cfg.linear_modes > 1:
         several, modes_cfg, modes_fitted = selection.pop("residual"), cfg, (net, norm, history, best)
         log(f"residual {'kept' if several['kept'] else 'dropped'} beside the linear part of {cfg.linear_modes} "
             "modes: training with one mode to compare")
@@ -269,6 +273,8 @@ def selection_line(selection: dict) -> str:
     fallback = selection.get("modes_fallback")
     if not fallback:
         modes = f"linear_modes {lin['linear_modes']}"
+    elif fallback["kept_modes"] and "reason" in fallback:
+        modes = f"linear_modes {lin['linear_modes']} ({fallback['reason']})"
     elif fallback["kept_modes"]:
         modes = (f"linear_modes {lin['linear_modes']} kept over one mode (energy score's relative difference "
                  f"{fallback['relative_difference']:+.3f} ± {fallback['standard_error']:.3f})")
