@@ -141,14 +141,13 @@ def test_small_data_numbers_are_consistent(tiny_run):
     lin, resid = sel["linear_part"], sel["residual"]
     cv = lin["cross_validation"]
     assert cv["n_demos"] == 27 and resid["n_val"] == 3
-    # the structure: the argmin with the via-points met as a planner's (or ProMP's form when the best is not
-    # better beyond one SE); the model's noise: the best of the table's noises for that structure
-    structure = cv["structure"]["row"]
+    # structure and noise: the argmin scored by the executed mean, met as a planner's (or ProMP's form when the
+    # best is not better beyond one SE)
     ref = cv.get("reference")
-    assert structure == (ref["best_row"] if ref["best_kept"] else ref["row"])
-    noise = min((r for r in cv["table"] if r[:4] == structure[:4]), key=lambda r: r[5])[4]
+    chosen = ref["departure_row"] if ref["best_kept"] else ref["row"]
+    assert cv["meet"] and len(cv["table"][0]) == 10 and ref["best_row"] == min(cv["table"], key=lambda r: r[5])
     assert [lin[k] for k in ("decoder_basis", "latent_linear", "basis_cov_reg", "basis_cov_reg_units", "via_noise")] \
-        == structure[:4] + [noise]
+        == chosen[:5]
     assert resid["kept"] == (resid["relative_difference"] + resid["standard_error"] < 0 and resid["via_mean_ok"])
     assert res["residual_used"] == [1.0 if resid["kept"] else 0.0]
     # MAP refinement uses the chosen via-point noise, per joint in rad; ProMP's own choice is recorded too

@@ -52,11 +52,11 @@ def test_train_with_no_configuration_selects_records_and_the_model_meets_via_poi
     # the linear part: the cross-validation's argmin on the 27 training demos (3 are the validation split)
     cv = lin["cross_validation"]
     assert cv["n_demos"] == ck.metadata["provenance"]["n_train"] == 27 and cv["folds"] == 5
-    # its structure chosen with the via-points met as a planner's, its noise the best of that structure
-    structure = cv["structure"]["row"]
-    assert min(r[5] for r in cv["table"] if tuple(r[:4]) == tuple(structure[:4])) == cv["cv_mse"]
+    # structure and noise scored together by the executed mean (met as a planner's): the best row or ProMP's form
+    ref = cv["reference"]
+    assert cv["meet"] and cv["cv_mse"] == (ref["departure_row"] if ref["best_kept"] else ref["row"])[5]
     train_ds, _ = ds.split(3, seed=0)  # train()'s split
-    again = cv_basis_hyperparameters(train_ds, 100, folds=5, seed=0, structure_noise=PLANNER_VIA_NOISE)
+    again = cv_basis_hyperparameters(train_ds, 100, folds=5, seed=0, meet=True, whole_noise=PLANNER_VIA_NOISE)
     # made on the training demos alone: the same rows, the same choices and scores up to the last bits (this
     # process and train's subprocess may run BLAS with different thread counts, which sum in another order:
     # up to 4e-9 relative measured on the worst-conditioned rows)

@@ -14,7 +14,7 @@ from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
 from deepprompt_ros.model.phase import phase_basis
 from deepprompt_ros.primitive.deep_promp import DeepProMP
 from deepprompt_ros.primitive.latent import PLANNER_VIA_NOISE
-from deepprompt_ros.training.basis import (CV_VIA_NOISES, cv_basis_hyperparameters, cv_score, cv_via_sets,
+from deepprompt_ros.training.basis import (CV_VIA_NOISES, _departs, cv_basis_hyperparameters, cv_score, cv_via_sets,
                                            fold_assignment, init_basis_pca, pca_basis)
 from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.objectives import sample_subset_weights
@@ -113,11 +113,57 @@ def test_the_cross_validation_scores_held_out_exact_conditioning_and_picks_the_m
         cv_basis_hyperparameters(ds, T, cov_reg_units=("metres",))
 
 
+def test_the_cross_validation_with_meet_scores_the_mean_moved_onto_the_via_points_by_the_smallest_change():
+    ds = smooth_demos(9, seed=1)
+    kw = dict(decoder_bases=(10,), latent_linears=(16,), cov_regs=(0.1,), via_noises=(1e-3, 0.3),
+              cov_reg_units=("raw",), folds=3, seed=4, reach_via_points=1)
+    soft, met = cv_basis_hyperparameters(ds, T, **kw), cv_basis_hyperparameters(ds, T, meet=True, whole_noise=1e-7, **kw)
+    assert met["meet"] and not soft["meet"] and [r[:5] for r in met["table"]] == [r[:5] for r in soft["table"]]
+    assert len(met["table"][0]) == 10 and len(soft["table"][0]) == 9  # the whole trajectory: a fourth conditioning
+    # one entry recomputed independently in weight space (k_l = n_b·d: z_lin spans every weight): the
+    # posterior mean w at noise s, then w + Δ with Δ = argmin Σ_t Σ_j std_j² (Φ(x_t) Δ_j)² s.t. H (w + Δ) = y_via,
+    # the KKT system of that constrained least squares
+    nb, k, c, s = 10, 30, 0.1, 0.3
+    fold_of, sets = fold_assignment(9, 3, 4), cv_via_sets(T, 9, 5, 2, 4)
+    phi = phase_basis(X, nb, 1.0, False)
+    y = np.stack([d.resampled(T) for d in ds.demos])
+    errs, whole, misses = np.zeros((9, 4)), np.zeros(9), []
+    for f in range(3):
+        tr = np.flatnonzero(fold_of != f)
+        norm = fit_normalization(DemoDataset(tuple(ds.demos[i] for i in tr), "t"), T)
+        std = np.asarray(norm.y_std, dtype=np.float64)
+        yn = (y - norm.y_mean) / std
+        mean, a, _ = pca_basis(phi, yn[tr], k, c, joint_std=std)
+        cov = a @ a.T
+        q = np.kron(phi.T @ phi, np.diag(std ** 2))  # squared trajectory change in rad, weights b·d + j
+        for i in np.flatnonzero(fold_of == f):
+            # every phase at noise 1e-7, k_l = n_b·d: the least-squares fit of the weights
+            w = np.linalg.lstsq(np.kron(phi, np.eye(3)), yn[i].reshape(-1), rcond=None)[0]
+            whole[i] = ((((phi @ w.reshape(nb, 3)) * std + norm.y_mean) - y[i]) ** 2).mean()
+            for j, sel in enumerate(sets[i]):
+                H = np.kron(phi[sel], np.eye(3))
+                yv = yn[i, sel].reshape(-1)
+                w = mean + cov @ H.T @ np.linalg.solve(H @ cov @ H.T + s * s * np.eye(H.shape[0]), yv - H @ mean)
+                kkt = np.block([[2 * q, H.T], [H, np.zeros((H.shape[0], H.shape[0]))]])
+                w = w + np.linalg.solve(kkt, np.concatenate([np.zeros(nb * 3), yv - H @ w]))[: nb * 3]
+                misses.append(np.abs(H @ w - yv).max())
+                pred = (phi @ w.reshape(nb, 3)) * std + norm.y_mean
+                errs[i, j] = ((pred - y[i]) ** 2).mean()
+    assert max(misses) < 1e-9  # the recomputation meets its via-points
+    entry = [r for r in met["table"] if r[:5] == [nb, k, c, "raw", s]][0]
+    score, parts = cv_score(errs, whole)
+    assert len(parts) == 4 and parts[3] < 0.1 * parts[2]  # all points tell more than 5
+    assert entry[5] == pytest.approx(score, rel=1e-6) and entry[6:] == pytest.approx(list(parts), rel=1e-6)
+    # the soft posterior mean at a noise of 0.3 stays far from the via-points: meeting them changes the score
+    loose = [r for r in soft["table"] if r[:5] == [nb, k, c, "raw", s]][0]
+    assert abs(loose[5] - entry[5]) > 0.1 * entry[5]
+
+
 def test_the_linear_part_is_chosen_on_the_training_demos_with_a_nonlinear_block_beside_it():
     ds = smooth_demos(12, seed=2)
     cfg = TrainConfig(n_points=T, latent_nonlinear=6, seed=3, cv_folds=4)
     out, rec = select_linear_part(ds, cfg, 3)
-    cv = cv_basis_hyperparameters(ds, T, folds=4, seed=3, structure_noise=PLANNER_VIA_NOISE)  # the AUTO_* grids
+    cv = cv_basis_hyperparameters(ds, T, folds=4, seed=3, meet=True, whole_noise=PLANNER_VIA_NOISE)  # the AUTO_* grids
     assert {k: getattr(out, k) for k in ("decoder_basis", "latent_linear", "basis_cov_reg", "basis_cov_reg_units",
                                          "via_noise")} == {k: cv[k] for k in ("decoder_basis", "latent_linear",
                                                                              "basis_cov_reg", "basis_cov_reg_units",
@@ -125,13 +171,11 @@ def test_the_linear_part_is_chosen_on_the_training_demos_with_a_nonlinear_block_
     assert out.latent_dim == out.latent_linear + 6 and out.basis_init == "pca" and out.basis_lr_scale == 0.0
     assert rec["cross_validation"]["table"] == cv["table"] and rec["latent_dim"] == out.latent_dim
     assert {r[4] for r in cv["table"]} == set(CV_VIA_NOISES)
-    # the structure is chosen with the via-points met as a planner's (its row at PLANNER_VIA_NOISE), the
-    # model's noise is then the best soft one of that structure
-    structure = cv["structure"]["row"]
-    assert cv["structure"]["noise"] == PLANNER_VIA_NOISE and structure[4] == PLANNER_VIA_NOISE
-    assert tuple(structure[:4]) == (out.decoder_basis, out.latent_linear, out.basis_cov_reg, out.basis_cov_reg_units)
-    same = [r for r in cv["table"] if tuple(r[:4]) == tuple(structure[:4])]
-    assert len(same) == len(CV_VIA_NOISES) and out.via_noise == min(same, key=lambda r: r[5])[4]
+    # structure and noise chosen together, scored by the executed (met) mean: the best row, or ProMP's form
+    ref = cv["reference"]
+    assert rec["cross_validation"]["meet"] and ref["best_row"] == min(cv["table"], key=lambda r: r[5])
+    assert [cv[k] for k in ("decoder_basis", "latent_linear", "basis_cov_reg", "basis_cov_reg_units", "via_noise")] \
+        == (ref["departure_row"] if ref["best_kept"] else ref["row"])[:5]
     few, rec = select_linear_part(smooth_demos(2), cfg, 3)
     assert "too few to cross-validate" in rec["method"] and few.latent_linear == few.decoder_basis * 3
     ModelConfig(n_joints=3, latent_dim=few.latent_dim, decoder_basis=few.decoder_basis,
@@ -302,8 +346,8 @@ def test_the_promp_form_is_left_only_on_evidence_beyond_one_standard_error():
         ref = cv["reference"]
         assert ref["row"][:2] == [20, 40] and ref["row"][3] == "raw"  # 20 RBFs, the whole weight space, λ in rad
         assert ref["best_row"] == min(cv["table"], key=lambda r: r[5])
-        assert ref["best_kept"] == (ref["log_difference"] + ref["standard_error"] < 0)
-        chosen = ref["best_row"] if ref["best_kept"] else ref["row"]
+        assert ref["best_kept"] == (ref["departure_row"] is not None)
+        chosen = ref["departure_row"] if ref["best_kept"] else ref["row"]
         assert [cv[k] for k in ("decoder_basis", "latent_linear", "basis_cov_reg", "basis_cov_reg_units",
                                 "via_noise")] == chosen[:5]
         if kind == "promp":  # the data are a ProMP of that form: no evidence against it
@@ -312,3 +356,19 @@ def test_the_promp_form_is_left_only_on_evidence_beyond_one_standard_error():
             assert ref["best_kept"] and cv["decoder_basis"] == 30 and ref["log_difference"] < -0.5
     no_ref = cv_basis_hyperparameters(_family("wiggle"), 100, reference=None)
     assert "reference" not in no_ref and no_ref["cv_mse"] == min(r[5] for r in no_ref["table"])
+
+
+def test_a_departure_from_the_reference_must_not_be_worse_on_any_conditioning():
+    rng = np.random.default_rng(0)
+    ref = rng.normal(0.0, 1.0, (30, 4))  # per-demo log errors: start, start + end, random sets, whole trajectory
+    noise = rng.normal(0.0, 0.02, (30, 4))
+    better = ref - 0.3 + noise  # lower on every conditioning
+    assert _departs(better, ref)
+    trade = better.copy()
+    trade[:, 3] = ref[:, 3] + 0.2 + noise[:, 3]  # lower overall (mean -0.175) but worse on the whole trajectory
+    assert (trade - ref).mean() < -0.1 and not _departs(trade, ref)
+    slight = better.copy()
+    slight[:, 3] = ref[:, 3] + rng.normal(0.0, 0.05, 30)  # the whole trajectory within noise of the reference
+    d = (slight - ref)[:, 3]
+    assert _departs(slight, ref) == (d.mean() <= d.std(ddof=1) / np.sqrt(30))
+    assert not _departs(ref + np.abs(noise), ref)  # worse overall: the reference stays

@@ -347,21 +347,26 @@ def cv_via_sets(n_points: int, n_demos: int, n_via: int = 5, draws: int = 2, see
                      for r in range(draws)] for i in range(n_demos)]
 
 
-#: What the sets of :func:`cv_via_sets` are, in order (the random sets are averaged into one).
-CV_CONDITIONINGS = ("start", "start+end", "random via-points")
+#: What the sets of :func:`cv_via_sets` are, in order (the random sets are averaged into one), and the
+#: whole trajectory that :func:`cv_basis_hyperparameters` adds with ``whole_noise``.
+CV_CONDITIONINGS = ("start", "start+end", "random via-points", "whole trajectory")
 
 
-def cv_score(errors: np.ndarray) -> tuple[float, tuple[float, float, float]]:
+def cv_score(errors: np.ndarray, whole: np.ndarray | None = None) -> tuple[float, tuple[float, ...]]:
     """The cross-validation error of one grid point from its per-set whole-trajectory MSEs ``errors``
-    (n_demos, 2 + draws) in the order of :func:`cv_via_sets`.
+    (n_demos, 2 + draws) in the order of :func:`cv_via_sets`, and ``whole`` (n_demos,) those from every
+    phase as via-points (optional).
 
     Returns (score, per-conditioning MSEs): the MSE of each conditioning of :data:`CV_CONDITIONINGS`
-    (mean over demos, and over the random sets), and as the score their geometric mean, so that each
-    conditioning weighs the same in relative terms: the start-only error, about the prior's spread, is
-    orders of magnitude above the error from 5 via-points and would decide an arithmetic mean alone.
+    (mean over demos, and over the random sets; the first three without ``whole``), and as the score
+    their geometric mean, so that each conditioning weighs the same in relative terms: the start-only
+    error, about the prior's spread, is orders of magnitude above the error from 5 via-points and
+    would decide an arithmetic mean alone.
     """
     e = np.asarray(errors, dtype=np.float64)
     parts = (float(e[:, 0].mean()), float(e[:, 1].mean()), float(e[:, 2:].mean()))
+    if whole is not None:
+        parts += (float(np.mean(whole)),)
     return float(np.exp(np.mean(np.log(np.maximum(parts, 1e-300))))), parts
 
 
@@ -385,8 +390,8 @@ def cv_basis_hyperparameters(ds: DemoDataset, n_points: int, decoder_bases: Sequ
                              cov_regs: Sequence[float] = AUTO_COV_REGS, via_noises: Sequence[float] = CV_VIA_NOISES,
                              cov_reg_units: Sequence[str] = BASIS_COV_REG_UNITS, n_via: int = 5, folds: int = 5,
                              draws: int = 2, seed: int = 0, reach_via_points: int = 5,
-                             reference: tuple[int, str] | None = PROMP_FORM,
-                             structure_noise: float | None = None) -> dict:
+                             reference: tuple[int, str] | None = PROMP_FORM, meet: bool = False,
+                             whole_noise: float | None = None) -> dict:
     """Choose the linear part Φ(x)(b + A z_lin) of a decoder — basis functions per joint n_b
     (``decoder_basis``), linear latent size k_l (``latent_linear``), PPCA regularizer λ
     (``basis_cov_reg``) and its units (``basis_cov_reg_units``), via-point noise (``via_noise``,
@@ -403,24 +408,36 @@ def cv_basis_hyperparameters(ds: DemoDataset, n_points: int, decoder_bases: Sequ
     ``folds``: at most one per demo. Deterministic in ``seed``.
 
     ``reference`` (n_b, units): the grid points of that basis with the whole weight space as latent
-    (k_l = n_b·d) and λ in those units — a ProMP (:data:`PROMP_FORM`) — are the default: the best grid
-    point is chosen over the best of them only if its per-demo log error (:func:`cv_score`'s terms, per
-    demo) is lower by more than one standard error of the paired difference (the one-standard-error
-    rule of :func:`deepprompt_ros.training.selection.keep_residual`); small differences on the
-    cross-validation's few demos do not carry to other demos.
+    (k_l = n_b·d) and λ in those units — a ProMP (:data:`PROMP_FORM`) — are the default: the best of
+    them is replaced by the best grid point that :func:`_departs` from it — a per-demo log error
+    (:func:`cv_score`'s terms, per demo) lower by more than one standard error of the paired difference
+    and on no conditioning higher by more than one —; small differences on the cross-validation's few
+    demos do not carry to other demos.
 
-    ``structure_noise``: when given, the structure (n_b, k_l, λ, units) is chosen by its score with
-    the via-points conditioned at that noise (the reference rule included) — the noise the linear part
-    will be conditioned with at deployment (a planner's via-points, met exactly) — and ``via_noise`` is
-    then the best of ``via_noises`` for that structure. A structure chosen at a soft noise can be far
-    off when the via-points are met exactly (the basis's approximation error is then interpolated,
-    not smoothed). ``structure_noise`` is not in the returned table's noises.
+    ``meet``: score each grid point by the mean the server executes for a planner
+    (:meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.condition_planner`): the posterior mean at
+    the row's noise moved onto the via-points by the smallest change of the linear part's trajectory
+    (squared change over the ``n_points`` phases in rad, every joint:
+    :func:`deepprompt_ros.primitive.linear_conditioning.smallest_change`); a set with more rows than
+    k_l, which the latent cannot meet, keeps the posterior mean. Structure and noise are then chosen
+    together by the error of what is deployed, as ProMP's own selection chooses its regularizer and
+    noise by the error of its posterior mean
+    (:func:`deepprompt_ros.baselines.promp_selection.select_promp`).
+
+    ``whole_noise``: when given, every grid point is also scored on each held-out demo conditioned on
+    all ``n_points`` phases (the paper's via-point reconstruction) by the posterior mean at that noise
+    (normalized units; the planner's noise gives the least-squares fit of the linear part, which a set
+    of more rows than k_l gets from the server), a fourth term of :func:`cv_score`: a basis or latent
+    too small to follow the demonstrations costs there what the few via-points of the other sets do
+    not show.
 
     Returns {"decoder_basis", "latent_linear", "basis_cov_reg", "basis_cov_reg_units", "via_noise",
     "cv_mse", "cv_mse_parts" (per conditioning of :data:`CV_CONDITIONINGS`), "folds", "draws", "n_demos",
-    "table": [[n_b, k_l, λ, units, noise, score, mse start, mse start+end, mse random], ...], and when the
-    reference is in the grid "reference": {"row", "best_row", "log_difference", "standard_error",
-    "best_kept"}}.
+    "meet", "whole_noise", "table": [[n_b, k_l, λ, units, noise, score, mse start, mse start+end, mse
+    random (, mse whole)], ...], and when the reference is in the grid "reference": {"row", "best_row"
+    (the lowest score), "log_difference" and
+    "standard_error" (of best_row against row), "departure_row" (what replaces row, or None), "best_kept"
+    (a departure chosen)}}.
     """
     demos = ds.demos
     n = len(demos)
@@ -441,15 +458,16 @@ def cv_basis_hyperparameters(ds: DemoDataset, n_points: int, decoder_bases: Sequ
     y_all = np.stack([d.resampled(n_points) for d in demos])  # (n, T, d) rad
     d = y_all.shape[2]
     sets = cv_via_sets(n_points, n, n_via, draws, seed)
-    if structure_noise is not None and not (math.isfinite(structure_noise) and structure_noise > 0):
-        raise ValueError(f"structure_noise must be a finite noise > 0 or None, got {structure_noise!r}")
-    noises = tuple(float(v) for v in via_noises) + ((float(structure_noise),) if structure_noise is not None else ())
-    noise2 = np.asarray(noises, dtype=np.float64) ** 2  # (S,): the grid's noises, then the structure's
+    noises = tuple(float(v) for v in via_noises)
+    noise2 = np.asarray(noises, dtype=np.float64) ** 2
+    if whole_noise is not None and not (math.isfinite(whole_noise) and whole_noise > 0):
+        raise ValueError(f"whole_noise must be a finite noise > 0 or None, got {whole_noise!r}")
     units = tuple(dict.fromkeys(cov_reg_units))
     ks_of = {nb: sorted({int(k) for k in latent_linears if max(1, reach_via_points * d) <= int(k) < nb * d}
                         | {nb * d}) for nb in bases}
     err = {(nb, k, float(c), u): np.zeros((n, len(sets[0]), noise2.size))
            for nb in bases for k in ks_of[nb] for c in cov_regs for u in units}
+    whole = {key: np.zeros(n) for key in err} if whole_noise is not None else None
     for f in range(folds):
         tr, te = np.flatnonzero(fold_of != f), np.flatnonzero(fold_of == f)
         norm = fit_normalization(DemoDataset(tuple(demos[i] for i in tr), ds.source), n_points)
@@ -463,61 +481,113 @@ def cv_basis_hyperparameters(ds: DemoDataset, n_points: int, decoder_bases: Sequ
                     mean, a, _ = pca_basis(phi, yn[tr], ks[-1], float(c), joint_std=std if u == "raw" else None)
                     for j in range(len(sets[0])):  # the j-th set of every held-out demo (same size): one batch
                         sel = np.stack([sets[i][j] for i in te])  # (B, V)
-                        for k, e in zip(ks, _conditioned_errors(phi, mean, a, ks, sel, yn[te], std, noise2)):
+                        for k, e in zip(ks, _conditioned_errors(phi, mean, a, ks, sel, yn[te], std, noise2, meet)):
                             err[(nb, k, float(c), u)][te, j] = e
-    table, structure_table, per_demo = [], [], {}
+                    if whole is not None:
+                        for k, e in zip(ks, _whole_errors(phi, mean, a, ks, yn[te], std, float(whole_noise) ** 2)):
+                            whole[(nb, k, float(c), u)][te] = e
+    table, per_demo = [], {}
     for (nb, k, c, u), e in err.items():
+        w = whole[(nb, k, c, u)] if whole is not None else None
         for s, v in enumerate(noises):
-            score, parts = cv_score(e[:, :, s])
-            row = [nb, k, c, u, v, score, *parts]
-            (table if s < len(via_noises) else structure_table).append(row)
-            per_demo[(nb, k, c, u, v)] = _log_scores(e[:, :, s])
-    ranked = structure_table if structure_noise is not None else table
-    best = min(ranked, key=lambda r: r[5])
-    out = {"folds": folds, "draws": draws, "n_demos": n, "table": table}
-    ref_rows = [r for r in ranked if reference is not None and (r[0], r[1], r[3]) == (reference[0], reference[0] * d,
-                                                                                       reference[1])]
-    if ref_rows:  # the best grid point replaces the best ProMP-form one only beyond one standard error
+            score, parts = cv_score(e[:, :, s], w)
+            table.append([nb, k, c, u, v, score, *parts])
+            per_demo[(nb, k, c, u, v)] = _log_scores(e[:, :, s], w)
+    best = min(table, key=lambda r: r[5])
+    out = {"folds": folds, "draws": draws, "n_demos": n, "meet": bool(meet), "whole_noise": whole_noise,
+           "table": table}
+    ref_rows = [r for r in table if reference is not None and (r[0], r[1], r[3]) == (reference[0], reference[0] * d,
+                                                                                     reference[1])]
+    if ref_rows:  # ProMP's form, left only for a row better overall and not worse on any conditioning
         ref = min(ref_rows, key=lambda r: r[5])
-        diff = per_demo[tuple(best[:5])] - per_demo[tuple(ref[:5])]
+        diff = per_demo[tuple(best[:5])].mean(1) - per_demo[tuple(ref[:5])].mean(1)
         se = float(diff.std(ddof=1) / np.sqrt(diff.size))
+        departure = min((r for r in table if _departs(per_demo[tuple(r[:5])], per_demo[tuple(ref[:5])])),
+                        key=lambda r: r[5], default=None)
         out["reference"] = {"row": ref, "log_difference": float(diff.mean()), "standard_error": se,
-                            "best_row": best, "best_kept": bool(diff.mean() + se < 0)}
-        best = best if diff.mean() + se < 0 else ref
-    if structure_noise is not None:  # the structure as chosen at structure_noise; its best soft noise
-        out["structure"] = {"noise": float(structure_noise), "row": best}
-        best = min((r for r in table if tuple(r[:4]) == tuple(best[:4])), key=lambda r: r[5])
+                            "best_row": best, "departure_row": departure, "best_kept": departure is not None}
+        best = ref if departure is None else departure
     return {"decoder_basis": best[0], "latent_linear": best[1], "basis_cov_reg": best[2],
             "basis_cov_reg_units": best[3], "via_noise": best[4], "cv_mse": best[5], "cv_mse_parts": best[6:], **out}
 
 
-def _log_scores(errors: np.ndarray) -> np.ndarray:
-    """(n_demos,) each held-out demo's log error: the mean over the conditionings of
-    :data:`CV_CONDITIONINGS` of the log of its MSE (the random sets averaged first), the per-demo
-    counterpart of :func:`cv_score`."""
+def _log_scores(errors: np.ndarray, whole: np.ndarray | None = None) -> np.ndarray:
+    """(n_demos, C) each held-out demo's log MSE per conditioning of :data:`CV_CONDITIONINGS` (the random
+    sets averaged first; the whole trajectory's from ``whole`` (n_demos,) when given): their mean over
+    the conditionings is the per-demo counterpart of :func:`cv_score`."""
     e = np.maximum(np.asarray(errors, dtype=np.float64), 1e-300)
-    return (np.log(e[:, 0]) + np.log(e[:, 1]) + np.log(e[:, 2:].mean(1))) / 3.0
+    logs = [np.log(e[:, 0]), np.log(e[:, 1]), np.log(e[:, 2:].mean(1))]
+    if whole is not None:
+        logs.append(np.log(np.maximum(np.asarray(whole, dtype=np.float64), 1e-300)))
+    return np.stack(logs, 1)
 
 
-def _conditioned_errors(phi, mean, a, ks, sel, y_true, std, noise2) -> list[np.ndarray]:
+def _departs(row: np.ndarray, ref: np.ndarray) -> bool:
+    """Whether a grid point of per-demo log errors ``row`` (n_demos, C) replaces the reference's ``ref``:
+    lower on the mean over the conditionings by more than one standard error of the paired per-demo
+    difference (the one-standard-error rule of :func:`deepprompt_ros.training.selection.keep_residual`)
+    and, on each conditioning alone, higher by at most one standard error: a choice that trades one
+    conditioning for another (a coarser basis that conditions better on few via-points and follows
+    the whole trajectory worse) keeps the reference."""
+    diff = row - ref
+    n = diff.shape[0]
+    total = diff.mean(1)
+    if total.mean() + total.std(ddof=1) / np.sqrt(n) >= 0:
+        return False
+    return bool(np.all(diff.mean(0) <= diff.std(0, ddof=1) / np.sqrt(n)))
+
+
+def _whole_errors(phi, mean, a, ks, y_true, std, noise2: float) -> list[np.ndarray]:
+    """Whole-trajectory MSEs (rad²) of the posterior mean of z_lin ~ N(0, I) given every phase of B
+    demos as via-points at noise variance ``noise2`` (normalized units), per latent size of ``ks``: the
+    information form z = (G + noise² I)⁻¹ Jᵀ r, G = JᵀJ = Σ_j A_jᵀ ΦᵀΦ A_j the same for every demo (k × k,
+    where the observation form would be T·d × T·d). phi (T, n_b), mean (n_b·d,), a (n_b·d, K), y_true
+    (B, T, d) normalized, std (d,). Returns per k an array (B,)."""
+    (t, nb), (b, _, d) = phi.shape, y_true.shape
+    wm = mean.reshape(nb, d)
+    res = y_true - (phi @ wm)[None]  # (B, T, d)
+    jtr_all = (phi.T @ res).reshape(b, nb * d) @ a  # (B, K): Jᵀ r, weights b·d + j as the rows of a
+    a3 = a.reshape(nb, d, -1)
+    gram_all = sum(a3[:, j].T @ (phi.T @ phi) @ a3[:, j] for j in range(d))  # (K, K): JᵀJ
+    out = []
+    for k in ks:
+        z = np.linalg.solve(gram_all[:k, :k] + noise2 * np.eye(k), jtr_all[:, :k].T)  # (k, B)
+        pred = phi @ (a[:, :k] @ z).reshape(nb, d * b)  # (T, d·B), the change from the mean
+        err = pred.reshape(t, d, b).transpose(2, 0, 1) - res  # (B, T, d)
+        out.append(((err * std) ** 2).mean((1, 2)))
+    return out
+
+
+def _conditioned_errors(phi, mean, a, ks, sel, y_true, std, noise2, meet: bool = False) -> list[np.ndarray]:
     """Whole-trajectory MSEs (rad²) of the posterior mean of z_lin ~ N(0, I) given the via-points of B
     demos, for each latent size of ``ks`` (the first k columns of ``a``) and each noise variance of
     ``noise2`` (S,): with J z + ε = r, ε ~ N(0, noise² I), z = Jᵀ (J Jᵀ + noise² I)⁻¹ r through the
-    eigendecomposition of J Jᵀ (all noises at once). phi (T, n_b), mean (n_b·d,), a (n_b·d, K),
-    sel (B, V) phase indices, y_true (B, T, d) normalized, std (d,). Returns per k an array (B, S)."""
+    eigendecomposition of J Jᵀ (all noises at once). ``meet``: that mean then moved onto the via-points
+    by the smallest change Δ of the trajectory, Δ = M⁻¹ Jᵀ (J M⁻¹ Jᵀ)⁻¹ (r − J z), M = Σ_j std_j² A_jᵀ
+    ΦᵀΦ A_j the squared change over the phases in rad (A_j the rows of joint j), where J has at most k
+    rows. phi (T, n_b), mean (n_b·d,), a (n_b·d, K), sel (B, V) phase indices, y_true (B, T, d)
+    normalized, std (d,). Returns per k an array (B, S)."""
     (t, nb), (b, v), d, s = phi.shape, sel.shape, y_true.shape[2], noise2.size
     wm = mean.reshape(nb, d)
     ph = phi[sel]  # (B, V, n_b)
     yv = np.take_along_axis(y_true, sel[:, :, None], 1)  # (B, V, d)
     res = (yv - ph @ wm).reshape(b, v * d)  # innovations, rows (via, joint)
     jac_all = (ph @ a.reshape(nb, -1)).reshape(b, v * d, -1)  # (B, V·d, K): row (v, j) = Σ_n φ_n(x_v) a[n·d + j]
+    if meet:
+        a_rad = a.reshape(nb, d, -1) * np.asarray(std, dtype=np.float64)[None, :, None]  # (n_b, d, K), joint units
+        metric_all = np.einsum("njk,nm,mjl->kl", a_rad, phi.T @ phi, a_rad)  # (K, K)
     out = []
     for k in ks:
         jac = jac_all[:, :, :k]
         e, u = np.linalg.eigh(jac @ jac.transpose(0, 2, 1))  # (B, M), (B, M, M)
         c = (u.transpose(0, 2, 1) @ res[:, :, None])  # Uᵀ r, (B, M, 1)
         coef = u @ (c / (np.clip(e, 0.0, None)[:, :, None] + noise2))  # (B, M, S)
-        w = (a[:, :k] @ (jac.transpose(0, 2, 1) @ coef)).reshape(b, nb, d * s)  # (B, n_b, d·S) weight offsets
+        z = jac.transpose(0, 2, 1) @ coef  # (B, k, S) posterior means
+        if meet and v * d <= k:
+            hm = jac @ np.linalg.pinv(metric_all[:k, :k], hermitian=True)  # (B, M, k) = J M⁻¹
+            gram = hm @ jac.transpose(0, 2, 1)  # (B, M, M) = J M⁻¹ Jᵀ
+            z = z + hm.transpose(0, 2, 1) @ (np.linalg.pinv(gram, hermitian=True) @ (res[:, :, None] - jac @ z))
+        w = (a[:, :k] @ z).reshape(b, nb, d * s)  # (B, n_b, d·S) weight offsets
         pred = (phi @ w).reshape(b, t, d, s) + (phi @ wm)[None, :, :, None]
         out.append((((pred - y_true[..., None]) * std[:, None]) ** 2).mean((1, 2)))
     return out

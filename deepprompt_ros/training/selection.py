@@ -1,10 +1,11 @@
 """The model selection of ``TrainConfig.auto_select``, made from the training demonstrations alone:
 
 1. :func:`select_linear_part` — the linear part Φ(x)(b + A z_lin) of the decoder (n_b, k_l, the PPCA
-   regularizer and its units) by cross-validation on the demos the network is trained on, scored with
-   the via-points conditioned as the server conditions a planner's (at
-   :data:`~deepprompt_ros.primitive.latent.PLANNER_VIA_NOISE`, met exactly), then the model's own
-   via-point noise for that structure (:func:`deepprompt_ros.training.basis.cv_basis_hyperparameters`),
+   regularizer and its units) and the model's own via-point noise, together, by cross-validation on the
+   demos the network is trained on, each scored by the mean the server executes for a planner (the
+   posterior mean at that noise moved onto the via-points by the smallest change of the trajectory;
+   every phase as via-points: the least-squares fit at the planner's noise;
+   :func:`deepprompt_ros.training.basis.cv_basis_hyperparameters` with ``meet`` and ``whole_noise``),
    and the modes of the demos' basis weights in that basis (``linear_modes``,
    :func:`deepprompt_ros.training.basis.weight_modes`): with K > 1 modes the PPCA is taken within the
    modes and the MLP residual holds the offsets between them;
@@ -67,7 +68,7 @@ def select_linear_part(train_ds: DemoDataset, cfg: TrainConfig, n_joints: int) -
     modes' criterion)."""
     if len(train_ds) >= 3:
         cv = cv_basis_hyperparameters(train_ds, cfg.n_points, basis_width=cfg.basis_width, folds=cfg.cv_folds,
-                                      structure_noise=PLANNER_VIA_NOISE, seed=cfg.seed)
+                                      meet=True, whole_noise=PLANNER_VIA_NOISE, seed=cfg.seed)
         choice = {k: cv[k] for k in _CHOSEN}
         # the weights the training's PCA initialization will see (training.basis.init_basis_pca)
         data = to_tensors(train_ds, fit_normalization(train_ds, cfg.n_points), cfg.n_points)
