@@ -52,7 +52,8 @@ def test_train_with_no_configuration_selects_records_and_the_model_meets_via_poi
     # the linear part: the cross-validation's argmin on the 27 training demos (3 are the validation split)
     cv = lin["cross_validation"]
     assert cv["n_demos"] == ck.metadata["provenance"]["n_train"] == 27 and cv["folds"] == 5
-    # structure and noise scored together by the executed mean (met as a planner's): the best row or ProMP's form
+    # structure and noise scored together by the executed mean (met as a planner's): ProMP's form or the row
+    # that departs from it
     ref = cv["reference"]
     assert cv["meet"] and cv["cv_mse"] == (ref["departure_row"] if ref["best_kept"] else ref["row"])[5]
     train_ds, _ = ds.split(3, seed=0)  # train()'s split

@@ -10,9 +10,10 @@ regularizer of the grid, and each demonstration of the fold is reconstructed fro
 of :func:`deepprompt_ros.training.basis.cv_via_sets` (start only, start + end, random sets of
 ``n_via``) with every noise of the grid; the score of a grid point is the held-out whole-trajectory
 MSE (:func:`deepprompt_ros.training.basis.cv_score`: the geometric mean over the three
-conditionings), and the lowest wins. DeepProMP's linear part
-is chosen the same way (:func:`deepprompt_ros.training.basis.cv_basis_hyperparameters`), so the
-comparison of the two is fair both ways.
+conditionings), and the lowest wins. DeepProMP's linear part is chosen on the same folds and sets
+(:func:`deepprompt_ros.training.basis.cv_basis_hyperparameters`), each scored by the mean the server
+executes (the via-points met), with the whole trajectory as a fourth conditioning, and ProMP's form
+left only where no conditioning gets worse.
 """
 from __future__ import annotations
 
@@ -38,8 +39,8 @@ VIA_NOISES = CV_VIA_NOISES
 class ProMPSelection:
     """The chosen ``cov_reg_scale`` and ``via_noise`` with their cross-validation error ``cv_mse``
     (rad², :func:`deepprompt_ros.training.basis.cv_score`), the number of folds and of training demos,
-    and the whole grid ``table``: rows (cov_reg_scale, via_noise, cv_mse, then the MSE of each
-    conditioning of :data:`deepprompt_ros.training.basis.CV_CONDITIONINGS`)."""
+    and the whole grid ``table``: rows (cov_reg_scale, via_noise, cv_mse, then the MSE of each of the
+    first three conditionings of :data:`deepprompt_ros.training.basis.CV_CONDITIONINGS`)."""
 
     cov_reg_scale: float
     via_noise: float

@@ -338,7 +338,7 @@ def cv_via_sets(n_points: int, n_demos: int, n_via: int = 5, draws: int = 2, see
     linear part (:func:`cv_basis_hyperparameters`) and of ProMP
     (:func:`deepprompt_ros.baselines.promp_selection.select_promp`), as indices into ``n_points``
     equally spaced phases: per demo ``[start], [start, end]`` and ``draws`` sets of ``n_via`` random
-    points (seeded by ``[seed, demo, draw]``). :data:`CV_CONDITIONINGS` names them."""
+    points (seeded by ``[seed, demo, draw]``): the first three conditionings of :data:`CV_CONDITIONINGS`."""
     if n_points < 2 or not 1 <= n_via <= n_points or draws < 1:
         raise ValueError(f"cv_via_sets needs n_points >= 2, 1 <= n_via <= n_points and draws >= 1; got "
                          f"n_points={n_points}, n_via={n_via}, draws={draws}")
@@ -401,7 +401,8 @@ def cv_basis_hyperparameters(ds: DemoDataset, n_points: int, decoder_bases: Sequ
     to the other demos, and each held-out demo is reconstructed from the via-point sets of
     :func:`cv_via_sets` (start, start + end, ``draws`` sets of ``n_via`` points) by exact Gaussian
     conditioning of z_lin ~ N(0, I) (the posterior mean, :func:`linear_map_condition`'s closed form,
-    noise ``via_noise`` on every joint in normalized units); a grid point's score is
+    noise ``via_noise`` on every joint in normalized units; with ``meet`` then moved onto the
+    via-points); a grid point's score is
     :func:`cv_score` of the held-out whole-trajectory MSEs (rad²). Per n_b, k_l runs over the values
     of ``latent_linears`` from ``reach_via_points`` · d (the rows of that many full via-points) to below
     n_b·d, and n_b·d itself; n_b over the values of ``decoder_bases`` up to ``n_points`` / 2.
@@ -418,8 +419,10 @@ def cv_basis_hyperparameters(ds: DemoDataset, n_points: int, decoder_bases: Sequ
     (:meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.condition_planner`): the posterior mean at
     the row's noise moved onto the via-points by the smallest change of the linear part's trajectory
     (squared change over the ``n_points`` phases in rad, every joint:
-    :func:`deepprompt_ros.primitive.linear_conditioning.smallest_change`); a set with more rows than
-    k_l, which the latent cannot meet, keeps the posterior mean. Structure and noise are then chosen
+    :func:`deepprompt_ros.primitive.linear_conditioning.smallest_change`, here by pseudo-inverses, and
+    without the server's bound on that change, PLANNER_CHANGE_BOUND). A set of more rows than k_l
+    (possible only with ``reach_via_points`` < ``n_via``) keeps the posterior mean at the row's noise,
+    where the server would condition again at the planner's. Structure and noise are then chosen
     together by the error of what is deployed, as ProMP's own selection chooses its regularizer and
     noise by the error of its posterior mean
     (:func:`deepprompt_ros.baselines.promp_selection.select_promp`).
