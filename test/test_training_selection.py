@@ -121,42 +121,44 @@ def test_the_cross_validation_with_meet_scores_the_mean_moved_onto_the_via_point
     met = cv_basis_hyperparameters(ds, T, meet=True, whole_noise=1e-7, **kw)
     assert met["meet"] and not soft["meet"] and [r[:5] for r in met["table"]] == [r[:5] for r in soft["table"]]
     assert len(met["table"][0]) == 10 and len(soft["table"][0]) == 9  # the whole trajectory: a fourth conditioning
-    # one entry recomputed independently in weight space (k_l = n_b·d: z_lin spans every weight): the
-    # posterior mean w at noise s, then w + Δ with Δ = argmin Σ_t Σ_j std_j² (Φ(x_t) Δ_j)² s.t. H (w + Δ) = y_via,
-    # the KKT system of that constrained least squares
-    nb, k, c, s = 10, 30, 0.1, 0.3
+    # two entries recomputed independently in the latent (k_l = 16 < n_b·d and the whole weight space 30): the
+    # posterior mean z at noise s, then z + Δ with Δ = argmin Σ_t Σ_j std_j² (Φ(x_t) (A Δ)_j)² s.t. H A (z + Δ) =
+    # y_via − H b, the KKT system of that constrained least squares; every phase: the least-squares fit of z
+    nb, c, s = 10, 0.1, 0.3
     fold_of, sets = fold_assignment(9, 3, 4), cv_via_sets(T, 9, 5, 2, 4)
     phi = phase_basis(X, nb, 1.0, False)
     y = np.stack([d.resampled(T) for d in ds.demos])
-    errs, whole, misses = np.zeros((9, 4)), np.zeros(9), []
-    for f in range(3):
-        tr = np.flatnonzero(fold_of != f)
-        norm = fit_normalization(DemoDataset(tuple(ds.demos[i] for i in tr), "t"), T)
-        std = np.asarray(norm.y_std, dtype=np.float64)
-        yn = (y - norm.y_mean) / std
-        mean, a, _ = pca_basis(phi, yn[tr], k, c, joint_std=std)
-        cov = a @ a.T
-        q = np.kron(phi.T @ phi, np.diag(std ** 2))  # squared trajectory change in rad, weights b·d + j
-        for i in np.flatnonzero(fold_of == f):
-            # every phase at noise 1e-7, k_l = n_b·d: the least-squares fit of the weights
-            w = np.linalg.lstsq(np.kron(phi, np.eye(3)), yn[i].reshape(-1), rcond=None)[0]
-            whole[i] = ((((phi @ w.reshape(nb, 3)) * std + norm.y_mean) - y[i]) ** 2).mean()
-            for j, sel in enumerate(sets[i]):
-                H = np.kron(phi[sel], np.eye(3))
-                yv = yn[i, sel].reshape(-1)
-                w = mean + cov @ H.T @ np.linalg.solve(H @ cov @ H.T + s * s * np.eye(H.shape[0]), yv - H @ mean)
-                kkt = np.block([[2 * q, H.T], [H, np.zeros((H.shape[0], H.shape[0]))]])
-                w = w + np.linalg.solve(kkt, np.concatenate([np.zeros(nb * 3), yv - H @ w]))[: nb * 3]
-                misses.append(np.abs(H @ w - yv).max())
-                pred = (phi @ w.reshape(nb, 3)) * std + norm.y_mean
-                errs[i, j] = ((pred - y[i]) ** 2).mean()
-    assert max(misses) < 1e-9  # the recomputation meets its via-points
-    entry = [r for r in met["table"] if r[:5] == [nb, k, c, "raw", s]][0]
-    score, parts = cv_score(errs, whole)
-    assert len(parts) == 4 and parts[3] < 0.1 * parts[2]  # all points tell more than 5
-    assert entry[5] == pytest.approx(score, rel=1e-6) and entry[6:] == pytest.approx(list(parts), rel=1e-6)
+    for k in (16, 30):
+        errs, whole, misses = np.zeros((9, 4)), np.zeros(9), []
+        for f in range(3):
+            tr = np.flatnonzero(fold_of != f)
+            norm = fit_normalization(DemoDataset(tuple(ds.demos[i] for i in tr), "t"), T)
+            std = np.asarray(norm.y_std, dtype=np.float64)
+            yn = (y - norm.y_mean) / std
+            mean, a, _ = pca_basis(phi, yn[tr], k, c, joint_std=std)
+            m = a.T @ np.kron(phi.T @ phi, np.diag(std ** 2)) @ a  # squared trajectory change in rad, in z
+            for i in np.flatnonzero(fold_of == f):
+                z = np.linalg.lstsq(np.kron(phi, np.eye(3)) @ a, yn[i].reshape(-1) - np.kron(phi, np.eye(3)) @ mean,
+                                    rcond=None)[0]
+                whole[i] = ((((phi @ (mean + a @ z).reshape(nb, 3)) * std + norm.y_mean) - y[i]) ** 2).mean()
+                for j, sel in enumerate(sets[i]):
+                    J = np.kron(phi[sel], np.eye(3)) @ a
+                    r = yn[i, sel].reshape(-1) - np.kron(phi[sel], np.eye(3)) @ mean
+                    z = J.T @ np.linalg.solve(J @ J.T + s * s * np.eye(J.shape[0]), r)
+                    kkt = np.block([[2 * m, J.T], [J, np.zeros((J.shape[0], J.shape[0]))]])
+                    z = z + np.linalg.lstsq(kkt, np.concatenate([np.zeros(k), r - J @ z]), rcond=None)[0][:k]
+                    misses.append(np.abs(J @ z - r).max())
+                    pred = (phi @ (mean + a @ z).reshape(nb, 3)) * std + norm.y_mean
+                    errs[i, j] = ((pred - y[i]) ** 2).mean()
+        # the whole weight space meets every set; 16 PPCA directions do not reach every joint everywhere (then
+        # the least-squares solution of the KKT system, as the cross-validation's pseudo-inverses)
+        assert (max(misses) < 1e-9) == (k == 30)
+        entry = [r for r in met["table"] if r[:5] == [nb, k, c, "raw", s]][0]
+        score, parts = cv_score(errs, whole)
+        assert len(parts) == 4 and parts[3] < parts[2]  # all points tell more than 5
+        assert entry[5] == pytest.approx(score, rel=1e-6) and entry[6:] == pytest.approx(list(parts), rel=1e-6)
     # the soft posterior mean at a noise of 0.3 stays far from the via-points: meeting them changes the score
-    loose = [r for r in soft["table"] if r[:5] == [nb, k, c, "raw", s]][0]
+    loose = [r for r in soft["table"] if r[:5] == [nb, 30, c, "raw", s]][0]
     assert abs(loose[5] - entry[5]) > 0.1 * entry[5]
 
 
