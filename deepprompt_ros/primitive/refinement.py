@@ -380,8 +380,9 @@ def refine_exact(prim: "DeepProMP", latent: LatentGaussian, via_x, via_y, joint_
     block first (:func:`~deepprompt_ros.primitive.linear_conditioning.refine_split`): nothing to do
     (0 iterations, the latent returned as it is) when its mean meets the via-points already, else
     z_lin is conditioned exactly again on these via-points with the noise divided by 10 per
-    iteration, keeping the z_nl candidates; the result stays a split latent whose samples pass the
-    via-points. Only if that cannot meet them (more constraints than the linear block can satisfy)
+    iteration, keeping the z_nl candidates; the result stays a split latent, its mean moved onto the
+    via-points and its covariance the one of the given latent (the Eq. 5 optimum for a linear
+    block: σ̃ = σ*), so its samples pass the via-points within the noise they were asked with. Only if that cannot meet them (more constraints than the linear block can satisfy)
     do the stages below continue from its best fit, with a plain latent.
 
     Unreachable via-points: stage 1 stops at a stationary point when no damped step (damping up
