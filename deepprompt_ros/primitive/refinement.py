@@ -382,8 +382,9 @@ def refine_exact(prim: "DeepProMP", latent: LatentGaussian, via_x, via_y, joint_
     z_lin is conditioned exactly again on these via-points with the noise divided by 10 per
     iteration, keeping the z_nl candidates; the result stays a split latent, its mean moved onto the
     via-points and its covariance the one of the given latent (the Eq. 5 optimum for a linear
-    block: σ̃ = σ*), so its samples pass the via-points within the noise they were asked with. Only if that cannot meet them (more constraints than the linear block can satisfy)
-    do the stages below continue from its best fit, with a plain latent.
+    block: σ̃ = σ*), so its samples pass the via-points within the noise they were asked with. Only
+    if that cannot meet them (more constraints than the linear block can satisfy) do the stages below
+    continue from its best fit, with a plain latent.
 
     Unreachable via-points: stage 1 stops at a stationary point when no damped step (damping up
     to 1e6) decreases the squared error or the gradient Jᵀr vanishes; it then restarts from
