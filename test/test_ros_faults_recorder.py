@@ -71,13 +71,21 @@ def client(ros_env):
         c.robot.close()
 
 
-def start_recorder(env, out: pathlib.Path, name: str) -> NodeProcess:
+def start_recorder(env, client, out: pathlib.Path, name: str) -> NodeProcess:
     """A demo_recorder in namespace ``/<name>`` (its services are its own: a killed recorder's stay
     in the DDS discovery data for a while, and a request to them is lost)."""
     proc = NodeProcess.start_module("deepprompt_ros.ros.demo_recorder", env, name=name, ros_args=[
         "-r", f"__ns:=/{name}"], params={"output_directory": str(out), "joint_states_topic": "/joint_states",
                                          "context_topics": ["object=/objects/cube/pose"]})
     proc.ns = f"/{name}"
+    # both services answer before the test goes on (a fresh recorder refuses these two without side
+    # effects), so no later reply is lost to a reply path the recorder has not matched yet
+    ok = (client.wait_for_service(StartRecording, f"{proc.ns}/start_recording", 30.0,
+                                  probe=StartRecording.Request(demo_name="-not-a-name"))
+          and client.wait_for_service(StopRecording, f"{proc.ns}/stop_recording", 30.0, probe=StopRecording.Request()))
+    if not ok:
+        proc.stop()
+        raise AssertionError("the recorder's services did not answer within 30 s" + proc.output_tail())
     return proc
 
 
@@ -132,7 +140,7 @@ def assert_intact(out: pathlib.Path, finished: dict) -> None:
 def test_recorder_stopped_mid_recording_keeps_finished_demos_and_records_again(ros_env, client, tmp_path, sig):
     out = tmp_path / "demos"
     finished = {}
-    rec = start_recorder(ros_env, out, f"{sig.name.lower()}_1")
+    rec = start_recorder(ros_env, client, out, f"{sig.name.lower()}_1")
     try:
         finished["first"] = record(client, rec, "first")
         start(client, rec, "second")
@@ -151,7 +159,7 @@ def test_recorder_stopped_mid_recording_keeps_finished_demos_and_records_again(r
     assert len(part) == 1 and part[0].name.endswith(".part"), part  # the raw messages, hidden
     assert not list(out.glob("*.part"))
 
-    rec = start_recorder(ros_env, out, f"{sig.name.lower()}_2")  # the next start, on the same folders
+    rec = start_recorder(ros_env, client, out, f"{sig.name.lower()}_2")  # the next start, on the same folders
     try:
         finished["second"] = record(client, rec, "second")  # the interrupted name is free
         finished["third"] = record(client, rec, "third")
@@ -163,7 +171,7 @@ def test_recorder_stopped_mid_recording_keeps_finished_demos_and_records_again(r
 def test_a_half_written_demo_is_not_a_demo_and_its_name_can_be_recorded(ros_env, client, tmp_path):
     out = tmp_path / "demos"
     out.mkdir()
-    rec = start_recorder(ros_env, out, "half_written")
+    rec = start_recorder(ros_env, client, out, "half_written")
     try:
         finished = {"first": record(client, rec, "first")}
         # what a crash during the write of 'second' leaves: a truncated temporary file

@@ -409,13 +409,35 @@ class RosTestClient:
             self._clients[key] = self.node.create_client(srv_type, name)
         return self._clients[key]
 
-    def wait_for_service(self, srv_type, name: str, timeout: float) -> bool:
-        """Wait until service ``name`` is available."""
-        cli = self._client(srv_type, name)
-        return self.wait_for(cli.service_is_ready, timeout)
+    def wait_for_service(self, srv_type, name: str, timeout: float, probe=None) -> bool:
+        """Wait until service ``name`` is available; with ``probe`` (a request the server refuses
+        or answers without side effects) also until the server has answered it.
 
-    def call(self, srv_type, name: str, request=None, timeout: float = 10.0):
+        "Available" is this client's view of the discovery: it has matched the server's request
+        reader and reply writer. The server matches this client's reply reader on its own
+        schedule, and rmw_fastrtps drops a reply when that has not happened within the reply
+        writer's ``max_blocking_time`` (100 ms by default; ros2/rmw_fastrtps#390, #704): the call
+        then never returns. A probe that was answered proves the reply path, which stays matched
+        for every later call through this client.
+        """
+        cli = self._client(srv_type, name)
+        end = time.monotonic() + timeout
+        if not self.wait_for(cli.service_is_ready, timeout):
+            return False
+        if probe is None:
+            return True
+        try:
+            self.call(srv_type, name, probe, max(end - time.monotonic(), 0.0), resend_after=1.0)
+        except TimeoutError:
+            return False
+        return True
+
+    def call(self, srv_type, name: str, request=None, timeout: float = 10.0, resend_after: float | None = None):
         """Call a service and return its response.
+
+        ``resend_after``: for a request that is safe to repeat, send it again whenever no reply
+        came for that many seconds (a reply the server could not deliver is lost, see
+        :meth:`wait_for_service`); the first reply is returned.
 
         Raises
         ------
@@ -426,10 +448,22 @@ class RosTestClient:
         end = time.monotonic() + timeout
         if not self.wait_for(cli.service_is_ready, timeout):
             raise TimeoutError(f"service '{name}' is not available after {timeout} s")
-        fut = cli.call_async(srv_type.Request() if request is None else request)
-        if not self.wait_for(fut.done, max(end - time.monotonic(), 0.0)):
-            raise TimeoutError(f"service '{name}' did not answer within {timeout} s")
-        return fut.result()
+        request = srv_type.Request() if request is None else request
+        sent = []
+        while True:
+            sent.append(cli.call_async(request))
+            window = end - time.monotonic() if resend_after is None else min(resend_after, end - time.monotonic())
+            if self.wait_for(lambda: any(f.done() for f in sent), max(window, 0.0)):
+                fut = next(f for f in sent if f.done())
+                for f in sent:
+                    if f is not fut:
+                        cli.remove_pending_request(f)
+                return fut.result()
+            if time.monotonic() >= end:
+                for f in sent:
+                    cli.remove_pending_request(f)
+                raise TimeoutError(f"service '{name}' did not answer within {timeout} s"
+                                   + (f" ({len(sent)} requests sent)" if len(sent) > 1 else ""))
 
     # -- life cycle -----------------------------------------------------------------------------
     def close(self) -> None:
