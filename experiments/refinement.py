@@ -194,7 +194,7 @@ def markdown(summary: dict, meta: dict) -> str:
                        f"{1e3 * s['time_s_median']:.0f} ms"])
     return (f"# Deployment-time refinement — max via-point error (rad), mean ± standard error over {meta['n_sets']} "
             f"sets\n\nModel `{meta['model']}` ({meta['n_joints']} joints, latent {meta['latent_dim']}, of which "
-            f"{meta.get('latent_linear', 0)} the linear block); held-out demonstrations; history: "
+            f"{meta['latent_linear']} the linear block); held-out demonstrations; history: "
             f"{meta['history_from']}. K-sample mean: max via-point error of the mean of the refined latent's K "
             f"sample decodings (the paper's Eq. 5 term), median over the sets.\n\n"
             + common.markdown_table(header, rows))

@@ -482,9 +482,11 @@ def cv_basis_hyperparameters(ds: DemoDataset, n_points: int, decoder_bases: Sequ
             for u in units:
                 for c in cov_regs:
                     mean, a, _ = pca_basis(phi, yn[tr], ks[-1], float(c), joint_std=std if u == "raw" else None)
+                    cache: dict = {}  # the trajectory metric of this (phi, a, std), for every set
                     for j in range(len(sets[0])):  # the j-th set of every held-out demo (same size): one batch
                         sel = np.stack([sets[i][j] for i in te])  # (B, V)
-                        for k, e in zip(ks, _conditioned_errors(phi, mean, a, ks, sel, yn[te], std, noise2, meet)):
+                        for k, e in zip(ks, _conditioned_errors(phi, mean, a, ks, sel, yn[te], std, noise2, meet,
+                                                                cache)):
                             err[(nb, k, float(c), u)][te, j] = e
                     if whole is not None:
                         for k, e in zip(ks, _whole_errors(phi, mean, a, ks, yn[te], std, float(whole_noise) ** 2)):
@@ -561,7 +563,8 @@ def _whole_errors(phi, mean, a, ks, y_true, std, noise2: float) -> list[np.ndarr
     return out
 
 
-def _conditioned_errors(phi, mean, a, ks, sel, y_true, std, noise2, meet: bool = False) -> list[np.ndarray]:
+def _conditioned_errors(phi, mean, a, ks, sel, y_true, std, noise2, meet: bool = False,
+                        cache: dict | None = None) -> list[np.ndarray]:
     """Whole-trajectory MSEs (rad²) of the posterior mean of z_lin ~ N(0, I) given the via-points of B
     demos, for each latent size of ``ks`` (the first k columns of ``a``) and each noise variance of
     ``noise2`` (S,): with J z + ε = r, ε ~ N(0, noise² I), z = Jᵀ (J Jᵀ + noise² I)⁻¹ r through the
@@ -569,16 +572,19 @@ def _conditioned_errors(phi, mean, a, ks, sel, y_true, std, noise2, meet: bool =
     by the smallest change Δ of the trajectory, Δ = M⁻¹ Jᵀ (J M⁻¹ Jᵀ)⁻¹ (r − J z), M = Σ_j std_j² A_jᵀ
     ΦᵀΦ A_j the squared change over the phases in rad (A_j the rows of joint j), where J has at most k
     rows. phi (T, n_b), mean (n_b·d,), a (n_b·d, K), sel (B, V) phase indices, y_true (B, T, d)
-    normalized, std (d,). Returns per k an array (B, S)."""
+    normalized, std (d,). ``cache``: a dict kept by the caller between calls with the same phi, a and
+    std (M and its pseudo-inverses are computed once for them). Returns per k an array (B, S)."""
     (t, nb), (b, v), d, s = phi.shape, sel.shape, y_true.shape[2], noise2.size
+    cache = {} if cache is None else cache
     wm = mean.reshape(nb, d)
     ph = phi[sel]  # (B, V, n_b)
     yv = np.take_along_axis(y_true, sel[:, :, None], 1)  # (B, V, d)
     res = (yv - ph @ wm).reshape(b, v * d)  # innovations, rows (via, joint)
     jac_all = (ph @ a.reshape(nb, -1)).reshape(b, v * d, -1)  # (B, V·d, K): row (v, j) = Σ_n φ_n(x_v) a[n·d + j]
-    if meet:
+    if meet and "metric" not in cache:
         a_rad = a.reshape(nb, d, -1) * np.asarray(std, dtype=np.float64)[None, :, None]  # (n_b, d, K), joint units
-        metric_all = np.einsum("njk,nm,mjl->kl", a_rad, phi.T @ phi, a_rad)  # (K, K)
+        p_a = ((phi.T @ phi) @ a_rad.reshape(nb, -1)).reshape(nb * d, -1)  # ΦᵀΦ A, rows (n, j)
+        cache["metric"] = a_rad.reshape(nb * d, -1).T @ p_a  # (K, K) = Σ_j A_jᵀ ΦᵀΦ A_j
     out = []
     for k in ks:
         jac = jac_all[:, :, :k]
@@ -587,7 +593,9 @@ def _conditioned_errors(phi, mean, a, ks, sel, y_true, std, noise2, meet: bool =
         coef = u @ (c / (np.clip(e, 0.0, None)[:, :, None] + noise2))  # (B, M, S)
         z = jac.transpose(0, 2, 1) @ coef  # (B, k, S) posterior means
         if meet and v * d <= k:
-            hm = jac @ np.linalg.pinv(metric_all[:k, :k], hermitian=True)  # (B, M, k) = J M⁻¹
+            if k not in cache:
+                cache[k] = np.linalg.pinv(cache["metric"][:k, :k], hermitian=True)
+            hm = jac @ cache[k]  # (B, M, k) = J M⁻¹
             gram = hm @ jac.transpose(0, 2, 1)  # (B, M, M) = J M⁻¹ Jᵀ
             z = z + hm.transpose(0, 2, 1) @ (np.linalg.pinv(gram, hermitian=True) @ (res[:, :, None] - jac @ z))
         w = (a[:, :k] @ z).reshape(b, nb, d * s)  # (B, n_b, d·S) weight offsets
