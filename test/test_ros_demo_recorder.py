@@ -246,12 +246,8 @@ def nodes(env, work):
 def client(env, nodes):
     with RosTestClient(env) as c:
         c.joint_states = c.subscribe("joint_states", JointState, 1)
-        for prefix in ("", "/p/", "/b/", "/c/"):  # each answers a request it refuses without side effects
-            for srv, probe in ((StartRecording, StartRecording.Request(demo_name="-not-a-name")),
-                               (StopRecording, StopRecording.Request())):
-                name = prefix + ("start_recording" if srv is StartRecording else "stop_recording")
-                assert c.wait_for_service(srv, name, 30.0, probe=probe), \
-                    "\n".join(p.output_tail() for p in nodes.values())
+        for ns in ("", "/p", "/b", "/c"):
+            assert c.wait_for_recorder(ns, 30.0), "\n".join(p.output_tail() for p in nodes.values())
         assert c.wait_for_messages(c.joint_states, 1, 10.0), nodes["sim"].output_tail()
         for prefix, name in (("", "A"), ("/p/", "P"), ("/b/", "B")):  # until each recorder discovered the sim
             deadline = time.monotonic() + 30.0

@@ -78,12 +78,7 @@ def start_recorder(env, client, out: pathlib.Path, name: str) -> NodeProcess:
         "-r", f"__ns:=/{name}"], params={"output_directory": str(out), "joint_states_topic": "/joint_states",
                                          "context_topics": ["object=/objects/cube/pose"]})
     proc.ns = f"/{name}"
-    # both services answer before the test goes on (a fresh recorder refuses these two without side
-    # effects), so no later reply is lost to a reply path the recorder has not matched yet
-    ok = (client.wait_for_service(StartRecording, f"{proc.ns}/start_recording", 30.0,
-                                  probe=StartRecording.Request(demo_name="-not-a-name"))
-          and client.wait_for_service(StopRecording, f"{proc.ns}/stop_recording", 30.0, probe=StopRecording.Request()))
-    if not ok:
+    if not client.wait_for_recorder(proc.ns, 30.0):
         proc.stop()
         raise AssertionError("the recorder's services did not answer within 30 s" + proc.output_tail())
     return proc

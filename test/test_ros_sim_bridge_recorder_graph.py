@@ -91,10 +91,7 @@ def test_remapped_nodes_have_unique_names_and_list_their_own_topics_and_services
         assert not set(SIM_PUBLISHES) & set(rec_pubs)
 
         # the remapped recorder records the remapped sim's joint states through those subscriptions
-        for srv, probe in ((StartRecording, StartRecording.Request(demo_name="-not-a-name")),
-                           (StopRecording, StopRecording.Request())):  # refused, no side effect
-            name = f"{NS}/start_recording" if srv is StartRecording else f"{NS}/stop_recording"
-            assert client.wait_for_service(srv, name, 30.0, probe=probe), outputs()
+        assert client.wait_for_recorder(NS, 30.0), outputs()
         res = client.call(StartRecording, f"{NS}/start_recording", StartRecording.Request(demo_name="graph"), 30.0)
         assert res.success, res.message + outputs()
         client.spin_for(0.5)

@@ -465,6 +465,19 @@ class RosTestClient:
                 raise TimeoutError(f"service '{name}' did not answer within {timeout} s"
                                    + (f" ({len(sent)} requests sent)" if len(sent) > 1 else ""))
 
+    def wait_for_recorder(self, namespace: str = "", timeout: float = 30.0) -> bool:
+        """Wait until the demo_recorder in ``namespace`` has answered on both of its services
+        (:meth:`wait_for_service` with a probe each: start_recording of an invalid name, and
+        stop_recording, which a recorder that is not recording refuses; neither has side effects
+        then), so no later reply to this client is lost."""
+        from deepprompt_msgs.srv import StartRecording, StopRecording
+
+        prefix = namespace.rstrip("/") + "/" if namespace else ""
+        return (self.wait_for_service(StartRecording, prefix + "start_recording", timeout,
+                                      probe=StartRecording.Request(demo_name="-not-a-name"))
+                and self.wait_for_service(StopRecording, prefix + "stop_recording", timeout,
+                                          probe=StopRecording.Request()))
+
     # -- life cycle -----------------------------------------------------------------------------
     def close(self) -> None:
         """Destroy the node, shut the context down, restore ``os.environ`` (idempotent)."""
