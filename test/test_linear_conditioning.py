@@ -311,6 +311,80 @@ def test_ambiguous_via_points_keep_both_modes():
     assert np.abs(s[:, [0, 2]] - yv).max() <= 5 * prim.cfg.via_noise  # every sample passes both via-points
 
 
+def decoder_modes_model(shares=(0.3, 1.0), encoder_z_nl=(0.5, 1000.0), context_dims=()):
+    """The two modes of :func:`bimodal_model` held by the decoder (``decoder_modes`` 2, no MLP): the
+    modes' offsets m_k the basis weights of ±sin(πx)·(1, 0.5), chosen by z_nl below / above the normal
+    quantile of ``shares[0]``. ``encoder_z_nl`` (μ, softplus⁻¹ σ²) is what every encoder says of z_nl;
+    ``context_dims`` adds (random) context encoders."""
+    prim, x = bimodal_model()
+    cfg = ModelConfig(n_joints=2, latent_dim=17, hidden=8, decoder_basis=8, latent_linear=16, residual_scale=0.0,
+                      phase_harmonics=1, decoder_modes=2, context_dims=tuple(context_dims))
+    net = DeepProMPNet(cfg)
+    net.load_state_dict(prim.net.state_dict(), strict=False)  # the modes' buffers and context encoders: below / random
+    phi = phase_basis(x, 8, 1.0, False)
+    w = np.linalg.lstsq(phi, np.sin(np.pi * x)[:, None] * np.array([1.0, 0.5]), rcond=None)[0].reshape(-1)
+    with torch.no_grad():
+        net.mode_offsets.copy_(torch.as_tensor(np.stack([-w, w])))
+        net.mode_cumulative_shares.copy_(torch.as_tensor(shares))
+        net.head.bias[16] = encoder_z_nl[0]
+        net.head.bias[17 + 16] = encoder_z_nl[1]
+    return DeepProMP(net.eval(), prim.norm, ["a", "b"]), x
+
+
+def test_decoder_modes_decode_alike_in_torch_and_numpy_and_the_threshold_is_the_shares_quantile():
+    prim, x = decoder_modes_model()
+    import statistics
+    t = statistics.NormalDist().inv_cdf(0.3)
+    z = np.zeros((4, 17))
+    z[:, 16] = [t - 1e-6, t + 1e-6, -3.0, 3.0]
+    z[:, :16] = np.random.default_rng(1).standard_normal(16)  # the same z_lin: the rows differ in the mode alone
+    np.testing.assert_array_equal(prim.mode_of(z), [0, 1, 0, 1])
+    with torch.no_grad():
+        ref = prim.net.decode(torch.as_tensor(z, dtype=torch.float32), torch.as_tensor(x, dtype=torch.float32))
+        np.testing.assert_array_equal(prim.net.mode_of(torch.as_tensor(z, dtype=torch.float32)).numpy(), [0, 1, 0, 1])
+    np.testing.assert_allclose(prim.decode(z, x), ref.numpy(), atol=1e-5)
+    # the two modes differ by the offsets' trajectories ±sin(πx)·(1, 0.5): 2 at x = 0.5 on joint a
+    both = prim.decode(z[:2], np.array([0.5]))
+    assert both[1, 0, 0] - both[0, 0, 0] == pytest.approx(2.0, abs=0.02)
+    y, jac = prim._np.decoder_jacobian(z[0], x)
+    np.testing.assert_allclose(y, prim.decode(z[0], x), atol=1e-12)
+    assert np.abs(jac[..., 16]).max() == 0.0  # the mode is constant between the thresholds
+
+
+def test_decoder_modes_are_weighed_by_the_exact_likelihood_whatever_the_encoders_say():
+    # every encoder puts z_nl at +3 (mode 1) with variance 1e-3: the mode is still the via-points' to choose
+    prim, x = decoder_modes_model(encoder_z_nl=(3.0, -5.0))
+    assert prim.encode_via_points(np.array([0.5]), np.zeros((1, 2)))[1][0, 16] < 0.01
+    xv = np.array([0.0, 1.0])  # where the modes meet: each mode in its share, 0.3 / 0.7
+    yv = np.array([[0.0, 0.0], [0.3, 0.15]])
+    modes = _modes(prim, prim.sample(prim.condition(xv, yv), np.array([0.5]), 2000, rng=4)[:, 0])
+    assert np.mean(modes != 0) == 1.0
+    assert np.mean(modes == -1) == pytest.approx(0.3, abs=0.05) and np.mean(modes == 1) == pytest.approx(0.7, abs=0.05)
+    for sign in (1.0, -1.0):  # one via-point on a mode: that mode, met exactly
+        yv = np.array([[0.15 + sign * 1.0, 0.075 + sign * 0.5]])
+        lat = prim.condition(np.array([0.5]), yv)
+        assert np.mean(_modes(prim, prim.sample(lat, np.array([0.5]), 1000, rng=2)[:, 0]) == sign) == 1.0
+        assert np.abs(prim.mean_trajectory(lat, np.array([0.5])) - yv).max() <= 1e-6
+
+
+def test_a_context_modelled_per_mode_chooses_the_mode():
+    from deepprompt_ros.primitive.linear_context import fit_linear_context
+    prim, x = decoder_modes_model(shares=(0.5, 1.0), context_dims=(("side", 1),))
+    rng = np.random.default_rng(5)
+    labels = np.arange(40) % 2
+    scores = rng.standard_normal((40, 16))
+    model = fit_linear_context({"side": (2.0 * labels - 1.0)[:, None] + 0.01 * rng.standard_normal((40, 1))},
+                               scores, labels, 2)
+    np.testing.assert_allclose(model.mode_means[:, 0], [-1.0, 1.0], atol=0.02)
+    norm = Normalization(np.zeros(2), np.ones(2), {"side": np.zeros(1)}, {"side": np.ones(1)})
+    prim = DeepProMP(prim.net, norm, ["a", "b"], metadata={"selection": {"context": {"linear": model.to_json()}}})
+    for side, sign in ((-1.0, -1), (1.0, 1)):
+        lat = prim.condition(np.array([0.0]), np.zeros((1, 2)), contexts={"side": np.array([[side]])})
+        assert np.mean(_modes(prim, prim.sample(lat, np.array([0.5]), 500, rng=6)[:, 0]) == sign) == 1.0
+        lat = prim.condition(contexts={"side": np.array([[side]])})  # the context alone
+        assert _modes(prim, prim.mean_trajectory(lat, np.array([0.5])))[0] == sign
+
+
 # ------------------------------------------------------------------------------------------------
 # refinement
 # ------------------------------------------------------------------------------------------------

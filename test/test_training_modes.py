@@ -114,9 +114,10 @@ def test_the_selection_records_the_modes_it_chose():
 
 
 # ----------------------------------------------------------------------------- training with the modes
-def test_a_residual_dropped_beside_modes_sends_the_training_back_to_one_gaussian(tmp_path):
-    # one update at a learning rate of 1 leaves the MLP residual garbage: the energy score drops it, and a
-    # linear part taken within the modes must not be served alone
+def test_the_decoder_holds_the_modes_and_they_are_kept_beside_a_dropped_residual(tmp_path):
+    # one update at a learning rate of 1 leaves the MLP residual garbage: the energy score drops it; the modes
+    # are in the decoder (b + m_k + A z_lin), so the mixture of the modes' linear parts is compared with the
+    # training of one mode and kept: its samples from the zero crossings lie on the modes
     ds = bimodal_sine(40, n_points=T, seed=4)
     cfg = TrainConfig(n_points=T, cv_folds=3, latent_nonlinear=2, hidden=8, steps=1, val_every=1, batch_size=4,
                       lr=1.0, threads=1, max_via_points=5)
@@ -124,18 +125,28 @@ def test_a_residual_dropped_beside_modes_sends_the_training_back_to_one_gaussian
     net, norm, _ = train(ds, cfg, out_path=tmp_path / "m.safetensors", info=info, log=lambda s: None)
     sel = info["selection"]
     assert sel["linear_part"]["linear_modes"] == 2
-    assert sel["modes_fallback"]["linear_modes"] == 2 and not sel["modes_fallback"]["residual"]["kept"]
-    assert info["train_config"]["linear_modes"] == 1 and not sel["residual"]["kept"]
-    assert net.cfg.residual_scale == 0.0
-    # the linear part served is the PPCA of all training demos
+    assert not sel["modes_fallback"]["residual"]["kept"] and sel["modes_fallback"]["kept_modes"], sel["modes_fallback"]
+    assert sel["modes_fallback"]["relative_difference"] + sel["modes_fallback"]["standard_error"] < 0
+    assert info["train_config"]["linear_modes"] == 2 and net.cfg.decoder_modes == 2 and net.cfg.residual_scale == 0.0
+    assert sel["modes_fallback"]["noise"]["via_noise"] == net.cfg.via_noise
+    # the served linear part: the PPCA within the modes, each mode's offset the mean of its demos' weights
     train_ds, _ = ds.split(4, seed=0)
     y = (np.stack([d.resampled(T) for d in train_ds.demos]) - norm.y_mean) / norm.y_std
-    mean, a, _ = pca_basis(phase_basis(X, net.cfg.decoder_basis, 1.0, False), y, net.cfg.latent_linear,
-                           info["train_config"]["basis_cov_reg"])
-    served = net.basis.weight.detach().double().numpy()
-    np.testing.assert_allclose(served @ served.T, a @ a.T, rtol=3e-5, atol=1e-6)  # float32 storage of A
-    np.testing.assert_allclose(net.basis.bias.detach().numpy(), mean, atol=1e-5)
-    assert load_checkpoint(tmp_path / "m.safetensors").metadata["selection"]["modes_fallback"]["linear_modes"] == 2
+    phi = phase_basis(X, net.cfg.decoder_basis, 1.0, False)
+    w = basis_weights(phi, y)
+    labels = weight_modes(w, seed=cfg.seed, n_modes=2).labels
+    offsets = np.stack([w[labels == g].mean(0) for g in (0, 1)]) - w.mean(0)
+    np.testing.assert_allclose(net.mode_offsets.numpy(), offsets, atol=1e-5)
+    np.testing.assert_allclose(net.mode_cumulative_shares.numpy(), [np.mean(labels == 0), 1.0], atol=1e-7)
+    loaded = load_checkpoint(tmp_path / "m.safetensors")
+    assert loaded.metadata["selection"]["modes_fallback"]["kept_modes"]
+    from deepprompt_ros.primitive.deep_promp import DeepProMP
+    prim = DeepProMP.from_checkpoint(str(tmp_path / "m.safetensors"))
+    np.testing.assert_array_equal(prim.net.mode_offsets.numpy(), net.mode_offsets.numpy())
+    x = np.linspace(0.0, 1.0, 101)
+    s = prim.sample(prim.condition(x[[0, 50, 100]], np.zeros((3, 1))), x, 200, np.random.default_rng(0))
+    pos, neg = float((s[:, 25, 0] > 0.6).mean()), float((s[:, 25, 0] < -0.6).mean())
+    assert pos + neg >= 0.95 and min(pos, neg) >= 0.2, (pos, neg)
 
 
 # ----------------------------------------------------------------------------- modes against one mode

@@ -15,8 +15,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import statistics
 from typing import Mapping
 
+import numpy as np
 import torch
 from torch import nn
 from torch.nn import functional as F
@@ -51,6 +53,36 @@ def latent_linear_errors(k_l: int, latent_dim: int, n_b: int, n_joints: int) -> 
         errors.append(f"latent_linear = {k_l!r}: expected at most decoder_basis x n_joints = {n_b} x {n_joints} = "
                       f"{n_b * n_joints} (the weights of the linear part)")
     return errors
+
+
+def decoder_modes_error(k_m: int, k_l: int, latent_dim: int) -> str:
+    """The rule of ``decoder_modes`` K its range cannot state: K >= 2 modes need a split latent with a
+    nonlinear block that chooses the mode (1 <= ``latent_linear`` < ``latent_dim``); ``''`` when it holds."""
+    if k_m == 1:
+        return "decoder_modes = 1: expected 0 (one mode) or >= 2"
+    if k_m >= 2 and not 1 <= k_l < latent_dim:
+        return (f"decoder_modes = {k_m!r} needs a split latent whose nonlinear block chooses the mode: expected "
+                f"1 <= latent_linear < latent_dim, got latent_linear {k_l!r}, latent_dim {latent_dim!r} (or "
+                "decoder_modes 0)")
+    return ""
+
+
+def mode_thresholds(cumulative_shares) -> list[float]:
+    """The K − 1 standard normal quantiles t_k = Φ_N⁻¹(S_k) of the modes' cumulative shares S_1 … S_{K−1}:
+    the first z_nl coordinate below t_1 chooses mode 0, in [t_{k}, t_{k+1}) mode k (:func:`mode_of_latent`)."""
+    inv = statistics.NormalDist().inv_cdf
+    return [inv(min(max(float(s), 1e-12), 1.0 - 1e-12)) for s in list(cumulative_shares)[:-1]]
+
+
+def mode_of_latent(z_nl0, cumulative_shares):
+    """The mode of each first z_nl coordinate: k with t_k <= z_nl0 < t_{k+1} (:func:`mode_thresholds`), so
+    z_nl ~ N(0, I) chooses mode k with probability π_k = S_k − S_{k−1}. numpy arrays give an index array,
+    torch tensors an index tensor."""
+    t = mode_thresholds(cumulative_shares.tolist() if isinstance(cumulative_shares, torch.Tensor)
+                        else cumulative_shares)
+    if isinstance(z_nl0, torch.Tensor):
+        return torch.bucketize(z_nl0, torch.tensor(t, dtype=z_nl0.dtype, device=z_nl0.device), right=True)
+    return np.searchsorted(np.asarray(t, dtype=np.float64), z_nl0, side="right")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -121,11 +153,16 @@ class ModelConfig:
     via_noise: float = param(1e-4, "standard deviation of a via-point in the exact conditioning of the linear "
                                    "latent block (latent_linear > 0) when a request states none", gt=0.0,
                              unit="normalized")
+    decoder_modes: int = param(0, "K: 0 = one mode; K >= 2 = the linear part's weights are b + m_k + A z_lin with "
+                                  "the mode k chosen by z_nl (mode_of_latent: the first z_nl coordinate's prior "
+                                  "mass split by the modes' shares), a mixture of K linear Gaussians; needs "
+                                  "latent_linear >= 1 and latent_linear < latent_dim", min=0)
 
     def __post_init__(self):
         validate(self, rules=lambda c: [decoder_basis_error(c.decoder_basis),
                                         *latent_linear_errors(c.latent_linear, c.latent_dim, c.decoder_basis,
-                                                              c.n_joints)])
+                                                              c.n_joints),
+                                        decoder_modes_error(c.decoder_modes, c.latent_linear, c.latent_dim)])
 
     @property
     def latent_nonlinear(self) -> int:
@@ -216,6 +253,12 @@ class DeepProMPNet(nn.Module):
             self.basis = nn.Linear(k_in, cfg.decoder_basis * cfg.n_joints)
             nn.init.zeros_(self.basis.bias)
             nn.init.normal_(self.basis.weight, std=0.1 / math.sqrt(k_in))
+        if cfg.decoder_modes:
+            # the modes' offsets m_k of the linear part's weights (rows as the basis') and their cumulative
+            # shares S_k (mode_of_latent); set from the training demos (training/basis.init_basis_pca)
+            k_m = cfg.decoder_modes
+            self.register_buffer("mode_offsets", torch.zeros(k_m, cfg.decoder_basis * cfg.n_joints))
+            self.register_buffer("mode_cumulative_shares", torch.arange(1, k_m + 1, dtype=torch.float32) / k_m)
 
     # -- encoders -------------------------------------------------------------------------
     def _head(self, feat: torch.Tensor):
@@ -252,6 +295,10 @@ class DeepProMPNet(nn.Module):
             return out
         return self.cfg.residual_scale * out + self.decode_linear(z, x)
 
+    def mode_of(self, z: torch.Tensor) -> torch.Tensor:
+        """The mode of each latent z (B, k) of a model with ``decoder_modes`` (:func:`mode_of_latent`), (B,)."""
+        return mode_of_latent(z[:, self.cfg.latent_linear].contiguous(), self.mode_cumulative_shares)
+
     def basis_functions(self, x: torch.Tensor) -> torch.Tensor:
         """Φ(x) of the linear part: x (..., ) → (..., n_b)."""
         c = self.cfg
@@ -261,6 +308,9 @@ class DeepProMPNet(nn.Module):
         """The linear part Φ(x)(b + A z): z (B, k), x (B, T) → (B, T, d); with ``latent_linear`` k_l > 0
         it reads z_lin = z[:, :k_l] only."""
         k_l = self.cfg.latent_linear
-        w = self.basis(z[:, :k_l] if k_l else z).reshape(z.shape[0], self.cfg.decoder_basis, self.cfg.n_joints)
+        w = self.basis(z[:, :k_l] if k_l else z)
+        if self.cfg.decoder_modes:  # b + m_k + A z_lin, k the mode z_nl chooses
+            w = w + self.mode_offsets[self.mode_of(z)]
+        w = w.reshape(z.shape[0], self.cfg.decoder_basis, self.cfg.n_joints)
         return torch.bmm(self.basis_functions(x), w)
 

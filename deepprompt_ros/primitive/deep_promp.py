@@ -206,6 +206,13 @@ class DeepProMP:
         """Per-element q(z | a_i): x (n,), y (n, d) rad → μ_i, σ²_i (n, k)."""
         return self._np.encode_via_points(x, y)
 
+    def mode_of(self, z) -> np.ndarray | None:
+        """The mode of the decoder each latent z (k,) or (n, k) chooses (``ModelConfig.decoder_modes``:
+        its z_nl's first coordinate), an int array of shape () or (n,); None for a decoder of one mode."""
+        if not self._np.has_modes:
+            return None
+        return np.asarray(self._np.mode_of(np.asarray(z, dtype=np.float64)[..., self.cfg.latent_linear:]))
+
     def encode_context(self, name: str, c):
         """q(z | c_i) for low-dim contexts: c (m, c_dim) raw units → μ_i, σ²_i (m, k)."""
         dim = self._context_dims.get(name)
@@ -450,7 +457,7 @@ class DeepProMP:
             w = None if via_weights is None else check_weights(via_weights, x.shape[0], "via-points")
             mask = None if via_mask is None else self.check_mask(via_mask, x.shape[0])
             via = x, y, w, mask
-            if not self._split or self._np.mlp_reads_z_nl:  # (a split latent's z_lin never reads the encodings)
+            if not self._split or self._np.decoder_reads_z_nl:  # (a split latent's z_lin never reads the encodings)
                 y_enc, w_enc = y, np.ones(x.shape[0]) if w is None else w
                 if mask is not None and not mask.all():
                     full = mask.all(1)

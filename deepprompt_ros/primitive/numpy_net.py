@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from deepprompt_ros.model.checkpoint import Normalization
-from deepprompt_ros.model.network import LOGVAR_MAX, DeepProMPNet
+from deepprompt_ros.model.network import LOGVAR_MAX, DeepProMPNet, mode_thresholds
 from deepprompt_ros.model.phase import phase_basis, phase_features
 
 __all__ = ["NumpyMLP", "NumpyNet", "METRIC_PHASES"]
@@ -81,6 +81,12 @@ class NumpyNet:
             self._basis_A = np.ascontiguousarray(bw)
             self._basis_A_rows = self._basis_A.reshape(nb, d * k_a)  # Φ(x) @ this: Φ(x) A as (T, d·k_a)
             self._basis_AT = np.ascontiguousarray(bw.reshape(nb * d, k_a).T)
+        self._modes = None  # decoder_modes K >= 2: the offsets m_k (K, n_b, d) in joint units and the thresholds
+        if self.cfg.decoder_modes:
+            ystd = np.asarray(normalization.y_std, dtype=np.float64)
+            self._modes = net.mode_offsets.detach().double().numpy().reshape(-1, nb, d) * ystd
+            self._mode_thresholds = np.asarray(mode_thresholds(net.mode_cumulative_shares.tolist()))
+            self._mode_cache: dict[bytes, np.ndarray] = {}
         self._phi_cache: dict[bytes, np.ndarray] = {}
         k_n = self.cfg.latent_nonlinear
         self._dec_W1z = self._dec.W[0][:, :k_n]  # the MLP's first layer: z_nl part, phase part
@@ -132,10 +138,24 @@ class NumpyNet:
         return rows
 
     @property
-    def mlp_reads_z_nl(self) -> bool:
-        """Whether the decoder's output depends on z_nl = z[k_l:] through the MLP (not when z_nl is
-        empty or the residual's factor s is 0)."""
-        return self.cfg.latent_nonlinear > 0 and not self._no_mlp
+    def decoder_reads_z_nl(self) -> bool:
+        """Whether the decoder's output depends on z_nl = z[k_l:]: through the MLP (not when z_nl is
+        empty or the residual's factor s is 0) or through the mode it chooses (``decoder_modes``)."""
+        return self.cfg.latent_nonlinear > 0 and (not self._no_mlp or self._modes is not None)
+
+    @property
+    def has_modes(self) -> bool:
+        """Whether the decoder has several modes chosen by z_nl (``decoder_modes``)."""
+        return self._modes is not None
+
+    def mode_of(self, z_nl: np.ndarray) -> np.ndarray | int:
+        """The mode each z_nl (..., k − k_l) chooses (``decoder_modes``; :func:`mode_of_latent`)."""
+        return np.searchsorted(self._mode_thresholds, np.asarray(z_nl)[..., 0], side="right")
+
+    def _mode_part(self, z_nl: np.ndarray, x) -> np.ndarray:
+        """Φ(x) m_k of the mode each z_nl chooses, joint units: z_nl (k − k_l,) → (T, d), (n, k − k_l) → (n, T, d)."""
+        per_mode = self._per_grid(self._mode_cache, x, lambda x: np.einsum("tb,kbd->ktd", self._phi(x), self._modes))
+        return per_mode[self.mode_of(z_nl)]
 
     @property
     def context_names(self) -> list[str]:
@@ -174,6 +194,8 @@ class NumpyNet:
         if self._no_mlp:  # the linear part and the joints' mean alone
             out = self._linear_part(z, x)
             out += self._b3
+            if self._modes is not None:
+                out += self._mode_part(z[..., self.k_lin:], x)
             return out
         out = self.decode_nonlinear(z[..., self.k_lin:], x)
         if self.cfg.decoder_basis:
@@ -184,18 +206,22 @@ class NumpyNet:
         """The decoder without its linear part, s·MLP(z_nl, x) plus the joints' mean, joint units:
         z_nl (k − k_l,) → (T, d), (n, k − k_l) → (n, T, d); x (T,). (The whole decoder when there is no
         linear basis; with ``latent_linear`` 0, z_nl is all of z.) A residual decoder with s = 0 has no
-        MLP part (its output layer is 0): the MLP is not evaluated."""
+        MLP part (its output layer is 0): the MLP is not evaluated. With ``decoder_modes`` the offset
+        Φ(x) m_k of the mode z_nl chooses is part of it."""
         if self._no_mlp:
             out = np.empty((*z_nl.shape[:-1], np.shape(x)[0], self._b3.shape[0]))
             out[...] = self._b3
-            return out
-        pre_x = self._layer1_phase(x)  # (T, h)
-        if z_nl.ndim == 1:
-            h = pre_x + z_nl @ self._W1zT
         else:
-            h = pre_x[None] + (z_nl @ self._W1zT)[:, None, :]
-        np.maximum(h, 0.0, out=h)
-        return self._decode_hidden(h)
+            pre_x = self._layer1_phase(x)  # (T, h)
+            if z_nl.ndim == 1:
+                h = pre_x + z_nl @ self._W1zT
+            else:
+                h = pre_x[None] + (z_nl @ self._W1zT)[:, None, :]
+            np.maximum(h, 0.0, out=h)
+            out = self._decode_hidden(h)
+        if self._modes is not None:
+            out += self._mode_part(z_nl, x)
+        return out
 
     def linear_design(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The linear part at phases x (n,) in joint units: Φ(x) b (n, d) and its matrix in z_lin,
@@ -254,6 +280,8 @@ class NumpyNet:
         out = self._decode_hidden(h)
         if self.cfg.decoder_basis:  # Σ_b φ_b(x_t)(b_b + A_b z_t), one z per phase
             w = ((z_x[:, :self.k_lin] if self.k_lin else z_x) @ self._basis_AT).reshape(z_x.shape[0], self.cfg.decoder_basis, self.cfg.n_joints) + self._basis_b
+            if self._modes is not None:
+                w = w + self._modes[self.mode_of(z_x[:, self.k_lin:])]
             out += np.einsum("tb,tbd->td", self._phi(x), w)
         return out
 
@@ -291,6 +319,8 @@ class NumpyNet:
         jac = np.matmul(c, self._dec_W1z) * self.y_std[:, None]  # (..., n, d, k − k_l)
         if self.cfg.decoder_basis:  # the linear part: its Jacobian Σ_b φ_b(x) A_b is the same for every z
             y = y + self._linear_part(z, x)
+            if self._modes is not None:  # the mode's offset: constant between the modes' thresholds
+                y = y + self._mode_part(z[..., k_l:], x)
             jac_lin = np.einsum("nb,bdk->ndk", self._phi(x), self._basis_A)
             if k_l:  # ∂/∂z_lin is the linear part's alone, ∂/∂z_nl the MLP's alone
                 jac = np.concatenate([np.broadcast_to(jac_lin, (*jac.shape[:-1], k_l)), jac], -1)

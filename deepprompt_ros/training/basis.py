@@ -291,13 +291,21 @@ def init_basis_pca(net: DeepProMPNet, data: TensorData, cov_reg: float = 0.0, ri
     w = basis_weights(phi, y, ridge)
     modes = weight_modes(w, seed, n_modes)
     labels = modes.labels if modes.n_modes > 1 else None
-    mean, a, scale = pca_basis(phi, y, k, cov_reg, ridge, joint_std, labels, net.cfg.sigma_y ** 2)
+    # an MLP that holds the offsets between the modes does so within σ_y: the linear part's variance covers it
+    offset_var = 0.0 if net.cfg.decoder_modes else net.cfg.sigma_y ** 2
+    mean, a, scale = pca_basis(phi, y, k, cov_reg, ridge, joint_std, labels, offset_var)
     net.basis.bias.copy_(torch.as_tensor(mean, dtype=torch.float32))
     net.basis.weight.copy_(torch.as_tensor(a, dtype=torch.float32))
     if labels is None:
         return PcaInit(scale, modes, None)
     n, n_b, d = y.shape[0], phi.shape[1], y.shape[2]
     offsets = np.stack([w[labels == g].mean(0) for g in range(modes.n_modes)]) - mean  # (K, n_b·d)
+    if net.cfg.decoder_modes == modes.n_modes:  # the decoder holds the modes: b + m_k + A z_lin, shares π_k
+        net.mode_offsets.copy_(torch.as_tensor(offsets, dtype=torch.float32))
+        shares = np.bincount(labels, minlength=modes.n_modes) / n
+        net.mode_cumulative_shares.copy_(torch.as_tensor(np.cumsum(shares), dtype=torch.float32))
+        net.mode_cumulative_shares[-1] = 1.0
+        return PcaInit(scale, modes, None)
     trajectories = np.einsum("tb,nbd->ntd", phi, offsets[labels].reshape(n, n_b, d))
     var = (np.einsum("tb,bdk->tdk", phi, a.reshape(n_b, d, k)) ** 2).sum(-1) + net.cfg.via_noise ** 2
     return PcaInit(scale, modes, ModeOffsets(torch.as_tensor(trajectories, dtype=torch.float32),

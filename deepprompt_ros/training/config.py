@@ -13,7 +13,7 @@ import pathlib
 from typing import Mapping
 
 from deepprompt_ros.common.params import ConfigError, from_mapping, param, param_from, validate
-from deepprompt_ros.model.network import ModelConfig, decoder_basis_error, latent_linear_errors
+from deepprompt_ros.model.network import ModelConfig, decoder_basis_error, decoder_modes_error, latent_linear_errors
 from deepprompt_ros.training.distributed import DEVICES
 
 __all__ = ["TrainConfig", "OBJECTIVES", "CONSISTENCY_ENCODER", "BASIS_INITS", "BASIS_COV_REG_UNITS"]
@@ -57,22 +57,22 @@ class TrainConfig:
                                     "(latent_linear + linear_modes - 1 with several modes), the linear part "
                                     "initialized as their PPCA and kept fixed (basis_init pca, "
                                     "basis_lr_scale 0), then the MLP residual kept (residual_scale) or dropped (0) "
-                                    "on the validation demos (with linear_modes > 1 the training with "
-                                    "linear_modes 1 runs too and the modes are kept only if better there), and "
+                                    "on the validation demos (with linear_modes > 1 the modes' via-point noise is "
+                                    "chosen on the validation demos, the training with linear_modes 1 runs too "
+                                    "and the modes are kept only if better there), and "
                                     "the low-dim contexts conditioned through their joint linear Gaussian model "
                                     "of z_lin, or through the encoders alone where they reconstruct the "
                                     "validation demos better by more than one standard error (in-memory "
                                     "training; a sharded dataset keeps the encoders); the file's values of "
                                     "those keys are not used. "
                                     "false: every key as given")
-    latent_nonlinear: int = param(8, "with auto_select: k_n, the latent dimensions only the MLP reads (the "
-                                     "nonlinear block that can hold several modes) when the demos form one mode; "
-                                     "with linear_modes K > 1 the block has K - 1 dimensions, the offsets between "
-                                     "the modes", min=1)
+    latent_nonlinear: int = param(8, "with auto_select: k_n, the latent dimensions z_nl that only the MLP "
+                                     "reads; with linear_modes K > 1 the first of them also chooses the mode",
+                                  min=1)
     judge_modes: bool = param(True, "with auto_select and K > 1 modes found: true = the training with "
                                     "linear_modes 1 runs too and the modes are kept only if better there; false = "
-                                    "the modes are kept as the demos' basis weights show them when their residual "
-                                    "is kept (no training with one mode)")
+                                    "the modes are kept as the demos' basis weights show them (no training with "
+                                    "one mode)")
     cv_folds: int = param(5, "with auto_select: folds of the cross-validation (at most one per training "
                              "demonstration)", min=2)
     residual_folds: int = param(0, "with auto_select: 0 = judge the MLP residual on the validation demos; K >= 2 "
@@ -91,10 +91,10 @@ class TrainConfig:
                                                    "'raw' (rad, ProMP's regularizer)", choices=BASIS_COV_REG_UNITS)
     linear_modes: int = param(1, "K, the modes of the training demos' basis weights (training/basis.weight_modes) "
                                  "the decoder treats apart: 1 = the linear part is the PPCA of all demos; K > 1 = "
-                                 "the PPCA of each demo's weights minus its mode's mean, plus the decoder's sigma_y "
-                                 "at every phase (A spans the variation inside a mode), and the MLP residual is "
-                                 "trained also towards each demo's mode mean minus b (it holds the offsets between "
-                                 "the modes); needs basis_init pca", min=1)
+                                 "the PPCA of each demo's weights minus its mode's mean (A spans the variation "
+                                 "inside a mode) and the modes' offsets and shares in the decoder (ModelConfig."
+                                 "decoder_modes: the first z_nl dimension chooses the mode); needs basis_init pca "
+                                 "and 1 <= latent_linear < latent_dim", min=1)
     # -- objective
     objective: str = param("paper", "'np': Neural-Process form, z from all inputs and β KL(q(z | all) ‖ q(z | "
                                  "subset)); 'paper': the paper's rewritten ELBO, z from the subset and β Σ_i "
@@ -167,6 +167,9 @@ class TrainConfig:
             "" if c.linear_modes == 1 or c.auto_select or (c.decoder_basis and c.basis_init == "pca") else
             f"linear_modes = {c.linear_modes!r} needs the PCA initialization of a linear part: expected "
             "decoder_basis >= 2 and basis_init pca (or linear_modes 1)",
+            "" if c.linear_modes == 1 or c.auto_select else decoder_modes_error(c.linear_modes, c.latent_linear,
+                                                                                c.latent_dim).replace(
+                "(or decoder_modes 0)", "(or linear_modes 1)").replace("decoder_modes", "linear_modes"),
             "" if c.residual_folds != 1 else
             "residual_folds = 1: expected 0 (the validation demos) or >= 2 folds",
             "" if not c.auto_select or c.n_points >= 2 * min(AUTO_DECODER_BASIS) else

@@ -23,8 +23,8 @@ from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.distributed import SINGLE, Runtime, judge_on_main, wrap
 from deepprompt_ros.training.objectives import loss_fn, validation_mse
 from deepprompt_ros.training.resume import ResumeFile, data_digest, fit_key, resume_path
-from deepprompt_ros.training.selection import (choose_context_paths, compare_modes, judge_residual, nonlinear_dims,
-                                               select_linear_part)
+from deepprompt_ros.training.selection import (choose_context_paths, choose_mode_noise, compare_modes, judge_residual,
+                                               nonlinear_dims, select_linear_part)
 from deepprompt_ros.training.tensors import fit_normalization, to_tensors
 
 __all__ = ["train", "new_network", "new_optimizer", "record_validation", "write_model", "selection_line",
@@ -103,10 +103,11 @@ def judge_with_fallback(cfg: TrainConfig, fitted: tuple, selection: dict, log, f
     """``auto_select`` after the training: the residual of ``fitted`` = (net, norm, history, best) judged
     on the validation demos ``val_ds`` (:func:`~deepprompt_ros.training.selection.judge_residual`, its
     cross-validation on ``refit_ds`` by :func:`in_memory_refit`). Beside a linear part of
-    ``cfg.linear_modes`` > 1 modes the training runs again with one (``fit_again(cfg)`` -> fitted), its
-    residual is judged, and the modes are kept only if their residual was kept and
-    :func:`~deepprompt_ros.training.selection.compare_modes` prefers them (with ``cfg.judge_modes`` false,
-    modes whose residual was kept are kept without that training). The judgements are made on
+    ``cfg.linear_modes`` > 1 modes (which the decoder holds, ``ModelConfig.decoder_modes``) the training
+    runs again with one (``fit_again(cfg)`` -> fitted), its residual is judged, and the modes are kept
+    only if :func:`~deepprompt_ros.training.selection.compare_modes` prefers them, each with its judged
+    residual and its path of the low-dimensional contexts (with ``cfg.judge_modes`` false the modes are
+    kept without that training). The judgements are made on
     process 0 of ``run`` and shared (``val_ds`` may be None elsewhere). The records go into
     ``selection``, the choices into one log line. Returns (the configuration trained, with its residual
     scale; the fitted network, normalization, history and best validation MSE)."""
@@ -115,11 +116,14 @@ def judge_with_fallback(cfg: TrainConfig, fitted: tuple, selection: dict, log, f
                                                             in_memory_refit(c)))
 
     def compare(a, b, c):
-        return run.broadcast(compare_modes(a, b, joint_names, val_ds, c) if run.is_main else None)
+        def paths(n, nm):  # each model with its own path of the low-dim contexts (in-memory training)
+            return None if refit_ds is None else choose_context_paths(n, nm, joint_names, c, refit_ds, val_ds)
+        return run.broadcast(compare_modes(a, b, joint_names, val_ds, c, paths(*a), paths(*b)) if run.is_main
+                             else None)
 
     net, norm, history, best = fitted
     net, selection["residual"] = judge(net, norm, cfg)
-    if cfg.linear_modes > 1 and not cfg.judge_modes and selection["residual"]["kept"]:
+    if cfg.linear_modes > 1 and not cfg.judge_modes:
         selection["modes_fallback"] = {"linear_modes": cfg.linear_modes, "kept_modes": True,
                                        "reason": "judge_modes false: kept without the training with one mode"}
     elif cfg.linear_modes > 1:
@@ -127,11 +131,15 @@ def judge_with_fallback(cfg: TrainConfig, fitted: tuple, selection: dict, log, f
         log(f"residual {'kept' if several['kept'] else 'dropped'} beside the linear part of {cfg.linear_modes} "
             "modes: training with one mode to compare")
         cfg = dataclasses.replace(cfg, linear_modes=1, latent_dim=cfg.latent_linear + nonlinear_dims(cfg, 1))
+        noise_net, noise = run.broadcast(choose_mode_noise(modes_fitted[0], norm, joint_names, val_ds, modes_cfg)
+                                         if run.is_main else None)
+        modes_cfg, modes_fitted = (dataclasses.replace(modes_cfg, via_noise=noise["via_noise"]),
+                                   (noise_net, *modes_fitted[1:]))
         net, norm, history, best = fit_again(cfg)
         net, selection["residual"] = judge(net, norm, cfg)
-        keep, record = compare((modes_fitted[0], modes_fitted[1]), (net, norm), modes_cfg) if several["kept"] else \
-            (False, {"kept_modes": False, "reason": "the residual of the modes was dropped"})
-        selection["modes_fallback"] = {"linear_modes": modes_cfg.linear_modes, "residual": several, **record}
+        keep, record = compare((modes_fitted[0], modes_fitted[1]), (net, norm), modes_cfg)
+        selection["modes_fallback"] = {"linear_modes": modes_cfg.linear_modes, "residual": several,
+                                       "noise": noise, **record}
         if keep:
             selection["one_mode"] = {"residual": selection.pop("residual")}
             selection["residual"] = several
@@ -243,7 +251,8 @@ def new_network(ds, cfg: TrainConfig) -> DeepProMPNet:
                        image_shape=ds.image_shape, sigma_y=cfg.sigma_y, var_floor=cfg.var_floor,
                        phase_harmonics=cfg.phase_harmonics, decoder_basis=cfg.decoder_basis,
                        basis_width=cfg.basis_width, residual_scale=cfg.residual_scale,
-                       variance_head=cfg.variance_head, latent_linear=cfg.latent_linear, via_noise=cfg.via_noise)
+                       variance_head=cfg.variance_head, latent_linear=cfg.latent_linear, via_noise=cfg.via_noise,
+                       decoder_modes=cfg.linear_modes if cfg.linear_modes > 1 else 0)
     return DeepProMPNet(mcfg)
 
 

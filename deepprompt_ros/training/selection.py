@@ -37,11 +37,13 @@ from deepprompt_ros.model.phase import phase_basis
 from deepprompt_ros.primitive.deep_promp import DeepProMP
 from deepprompt_ros.primitive.latent import PLANNER_VIA_NOISE
 from deepprompt_ros.primitive.linear_context import fit_linear_context
-from deepprompt_ros.training.basis import basis_weights, cv_basis_hyperparameters, fold_assignment, weight_modes
+from deepprompt_ros.training.basis import (CV_VIA_NOISES, basis_weights, cv_basis_hyperparameters, fold_assignment,
+                                          weight_modes)
 from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.tensors import fit_normalization, to_tensors
 
-__all__ = ["select_linear_part", "nonlinear_dims", "judge_residual", "compare_modes", "choose_context_paths",
+__all__ = ["select_linear_part", "nonlinear_dims", "judge_residual", "choose_mode_noise", "compare_modes",
+           "choose_context_paths", "with_via_noise",
            "energy_score", "keep_residual", "without_residual",
            "FALLBACK_LINEAR_PART", "RESIDUAL_VIA_POINTS", "RESIDUAL_DRAWS", "RESIDUAL_SAMPLES"]
 
@@ -88,13 +90,10 @@ def select_linear_part(train_ds: DemoDataset, cfg: TrainConfig, n_joints: int) -
 
 
 def nonlinear_dims(cfg: TrainConfig, n_modes: int) -> int:
-    """The dimensions of the latent block z_nl that only the MLP reads: ``cfg.latent_nonlinear`` for
-    demos of one mode; K − 1 for K > 1 modes, where the MLP holds the offsets between the modes (K − 1
-    dimensions place K codes in general position) and the linear part the variation inside them. Fewer
-    dimensions leave fewer directions in which the MLP must be constant on each mode's side, so the
-    draws of z_nl that the conditioning weighs (a Gaussian over all the codes when the via-points cannot
-    tell the modes apart) fall less often between them."""
-    return cfg.latent_nonlinear if n_modes == 1 else n_modes - 1
+    """The dimensions of the latent block z_nl: ``cfg.latent_nonlinear``, which the MLP reads; with
+    K > 1 modes the first of them also chooses the mode (``ModelConfig.decoder_modes``)."""
+    del n_modes  # the same block for every number of modes
+    return cfg.latent_nonlinear
 
 
 def judge_residual(net: DeepProMPNet, norm: Normalization, joint_names, val_ds: DemoDataset, cfg: TrainConfig,
@@ -241,20 +240,47 @@ def _pair_scores(on: DeepProMP, off: DeepProMP, demos: DemoDataset, cfg: TrainCo
 
 
 def compare_modes(several: tuple[DeepProMPNet, Normalization], one: tuple[DeepProMPNet, Normalization], joint_names,
-                  val_ds: DemoDataset, cfg: TrainConfig) -> tuple[bool, dict]:
+                  val_ds: DemoDataset, cfg: TrainConfig, several_context: dict | None = None,
+                  one_context: dict | None = None) -> tuple[bool, dict]:
     """After a training of K > 1 modes kept its residual: keep it over the training of one mode
     (``linear_modes`` 1, its residual judged) only when the rule of :func:`judge_residual` prefers it on
     the validation demos — a lower energy score by more than one standard error, and an executed mean
     at the random via-point sets not worse by more than one — so that modes are kept where they make
-    the conditioned distribution better, never at the cost of the via-points. (The residual of K > 1
-    modes is judged against the linear part of the modes alone, which holds none of the offsets between
-    them: a weak reference.) Returns (keep the modes, the record)."""
+    the conditioned distribution better, never at the cost of the via-points. ``several_context``,
+    ``one_context``: each model's record of :func:`choose_context_paths` (its path of the low-dimensional
+    contexts), None for the encoders. Returns (keep the modes, the record)."""
     extras = bool(val_ds.context_dims) or val_ds.image_shape is not None
-    es, mse = _pair_scores(DeepProMP(*several, joint_names), DeepProMP(*one, joint_names), val_ds, cfg, extras)
+
+    def primitive(fitted, context):
+        return DeepProMP(*fitted, joint_names, metadata={"selection": {"context": context}} if context else None)
+    es, mse = _pair_scores(primitive(several, several_context), primitive(one, one_context), val_ds, cfg, extras)
     keep, diff, se, via_diff, via_se, _ = _prefer_first(es, mse)
     return keep, {"kept_modes": bool(keep), "judged_on": "validation demos", "relative_difference": diff,
                   "standard_error": se, "via_mean_relative_difference": via_diff, "via_mean_standard_error": via_se,
                   "mse_modes": mse[0].mean(1).tolist(), "mse_one_mode": mse[1].mean(1).tolist()}
+
+
+def choose_mode_noise(net: DeepProMPNet, norm: Normalization, joint_names, val_ds: DemoDataset,
+                      cfg: TrainConfig) -> tuple[DeepProMPNet, dict]:
+    """With K > 1 modes, before :func:`compare_modes`: the via-point noise of the model of the modes
+    (``ModelConfig.via_noise``), whose linear part — the PPCA within the modes — is not the one
+    :func:`select_linear_part` cross-validated the noise for: among :data:`~deepprompt_ros.training.basis.CV_VIA_NOISES`,
+    the one whose means at the random via-point sets of :func:`judge_residual` have the lowest MSE on
+    the validation demos. Returns (a copy of ``net`` with that noise, the record)."""
+    mse = {}
+    for noise in CV_VIA_NOISES:
+        prim = DeepProMP(with_via_noise(net, noise), norm, joint_names)
+        mse[noise] = float(_pair_scores(prim, prim, val_ds, cfg, False)[1][0, 1].mean())
+    best = min(mse, key=lambda v: mse[v])
+    return with_via_noise(net, best), {"via_noise": best, "judged_on": "validation demos",
+                                       "mse_random_via_points": {f"{k:g}": v for k, v in mse.items()}}
+
+
+def with_via_noise(net: DeepProMPNet, noise: float) -> DeepProMPNet:
+    """A copy of ``net`` whose conditioning's via-point noise (``ModelConfig.via_noise``) is ``noise``."""
+    out = DeepProMPNet(dataclasses.replace(net.cfg, via_noise=float(noise)))
+    out.load_state_dict(net.state_dict())
+    return out.eval()
 
 
 def without_residual(net: DeepProMPNet) -> DeepProMPNet:
@@ -308,9 +334,14 @@ def choose_context_paths(net: DeepProMPNet, norm: Normalization, joint_names, cf
         return {"linear": None, "reason": why}
     base = DeepProMP(net, norm, joint_names, name="selection")
     x = np.linspace(0.0, 1.0, cfg.n_points)
-    scores = np.stack([base.condition(x, d.resampled(cfg.n_points), n_candidates=0).mean[:cfg.latent_linear]
-                       for d in train_ds.demos])
-    model = fit_linear_context({n: np.stack([d.contexts[n].mean(0) for d in train_ds.demos]) for n in names}, scores)
+    # each demo's z_lin given all its points (with several modes: of the candidate, and so the mode, of the
+    # highest posterior density)
+    k_l, k_m = cfg.latent_linear, net.cfg.decoder_modes
+    latents = np.stack([base.condition(x, d.resampled(cfg.n_points), n_candidates=32 if k_m else 0).mean
+                        for d in train_ds.demos])
+    labels = base.mode_of(latents) if k_m else None
+    model = fit_linear_context({n: np.stack([d.contexts[n].mean(0) for d in train_ds.demos]) for n in names},
+                               latents[:, :k_l], labels, k_m)
     images = val_ds.image_shape is not None and net.cfg.image_shape is not None
     conds = ("low_dim", "image+low") if images else ("low_dim",)
     candidates = {"encoders": {"linear": None}, "linear model": {"linear": model.to_json()}}
