@@ -85,8 +85,9 @@ class AblatedDeepProMP(DeepProMPModel):
         self.linear = bool(cfg.decoder_basis)
         if self.linear:
             base = prim.with_residual_scale(0.0)
-            self.what = (f"linear part alone ({cfg.decoder_basis} RBFs/joint, latent_linear {cfg.latent_linear}), "
-                         "encoders unused")
+            modes = f", {cfg.decoder_modes} modes" if cfg.decoder_modes else ""
+            self.what = (f"linear part alone ({cfg.decoder_basis} RBFs/joint, latent_linear {cfg.latent_linear}"
+                         f"{modes}), encoders unused")
         else:
             torch.manual_seed(int(prim.metadata.get("train_config", {}).get("seed", 0)))
             base = DeepProMP(DeepProMPNet(cfg), prim.norm, prim.joint_names, name=self.kind, metadata=prim.metadata)
@@ -116,6 +117,7 @@ def model_label(model: MovementPrimitiveModel) -> str:
     if isinstance(model, DeepProMPModel):
         c = model.primitive.cfg
         dec = (f"linear part {c.decoder_basis} RBFs/joint, latent_linear {c.latent_linear} of {c.latent_dim}, "
+               f"{f'{c.decoder_modes} modes, ' if c.decoder_modes else ''}"
                f"residual {'kept' if c.residual_scale else 'dropped'}" if c.decoder_basis
                else f"plain MLP decoder, latent {c.latent_dim}")
         return f"{dec}, objective {model.primitive.metadata.get('train_config', {}).get('objective', '?')}"

@@ -8,7 +8,7 @@
    :func:`deepprompt_ros.training.basis.cv_basis_hyperparameters` with ``meet`` and ``whole_noise``),
    and the modes of the demos' basis weights in that basis (``linear_modes``,
    :func:`deepprompt_ros.training.basis.weight_modes`): with K > 1 modes the PPCA is taken within the
-   modes and the MLP residual holds the offsets between them;
+   modes and the decoder holds the offsets between them (``ModelConfig.decoder_modes``);
 2. :func:`judge_residual` — after training, the MLP residual kept or dropped (``residual_scale`` 0)
    by comparing the model with and without it on the validation demos of the training split (or,
    with ``residual_folds``, on the held-out demos of a cross-validation of the whole training):
