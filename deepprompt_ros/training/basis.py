@@ -19,7 +19,7 @@ from deepprompt_ros.model.phase import phase_basis
 from deepprompt_ros.training.config import AUTO_DECODER_BASIS, BASIS_COV_REG_UNITS
 from deepprompt_ros.training.tensors import TensorData, fit_normalization
 
-__all__ = ["basis_weights", "pca_basis", "WeightModes", "weight_modes", "mode_dip", "ModeOffsets", "PcaInit",
+__all__ = ["basis_weights", "pca_basis", "WeightModes", "weight_modes", "mode_dip", "PcaInit",
            "init_basis_pca",
            "MAX_MODES", "MODE_VARIANCE", "MODE_DEMOS_PER_DIM", "MODE_DIP", "MODE_MIN_SHARE", "MODE_MIN_DEMOS",
            "linear_map_condition", "fold_assignment", "cv_via_sets", "CV_CONDITIONINGS",
@@ -39,8 +39,8 @@ def basis_weights(phi: np.ndarray, y: np.ndarray, ridge: float = 1e-6) -> np.nda
 
 
 def pca_basis(phi: np.ndarray, y: np.ndarray, latent_dim: int, cov_reg: float = 0.0,
-              ridge: float = 1e-6, joint_std: np.ndarray | None = None, labels: np.ndarray | None = None,
-              offset_var: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+              ridge: float = 1e-6, joint_std: np.ndarray | None = None,
+              labels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The PPCA of demonstrations in a basis (numpy, float64) — the computation behind
     :func:`init_basis_pca`: per demo the ridge-regression weights W_i (:func:`basis_weights`), b =
     their mean, the k = ``latent_dim`` columns of A = the top-k eigenvectors of their covariance C + R
@@ -48,10 +48,8 @@ def pca_basis(phi: np.ndarray, y: np.ndarray, latent_dim: int, cov_reg: float = 
 
     ``labels`` (D,) — the mode of each demo (:func:`weight_modes`): C is then the pooled within-mode
     covariance, of each W_i minus its mode's mean (D − K degrees of freedom), so z ~ N(0, I) spans
-    the variation inside a mode and not the offsets between the modes; b stays the mean of all.
-    The offsets are then the MLP residual's, known to within a standard deviation of
-    sqrt(``offset_var``) at each phase (normalized units): C gets ``offset_var`` / mean_x ‖Φ(x)‖² on
-    its diagonal, which adds about ``offset_var`` to the linear part's variance at every phase.
+    the variation inside a mode and not the offsets between the modes (the decoder's,
+    ``ModelConfig.decoder_modes``); b stays the mean of all.
 
     The regularizer R (``basis_cov_reg_units``): with ``joint_std`` None, R = λI in the normalized
     units of ``y``, λ = ``cov_reg`` · mean(diag C); with ``joint_std`` (d,) — the joints' normalization
@@ -74,22 +72,21 @@ def pca_basis(phi: np.ndarray, y: np.ndarray, latent_dim: int, cov_reg: float = 
     n_b = w.shape[1] // d
     mean = w.mean(0)
     if labels is None:
-        dev, dof, floor = w - mean, max(1, w.shape[0] - 1), 0.0
+        dev, dof = w - mean, max(1, w.shape[0] - 1)
     else:
         groups = np.unique(labels, return_inverse=True)[1]
         centres = np.stack([w[groups == g].mean(0) for g in range(groups.max() + 1)])
         dev, dof = w - centres[groups], max(1, w.shape[0] - centres.shape[0])
-        floor = offset_var / float(np.mean((phi ** 2).sum(1)))
     if joint_std is None:
         _, sv, vt = np.linalg.svd(dev, full_matrices=True)  # vt: all n_b·d directions, data span first
         eig = np.zeros(vt.shape[0])
         eig[: sv.size] = sv ** 2 / dof
-        eig += cov_reg * eig.sum() / eig.size + floor
+        eig += cov_reg * eig.sum() / eig.size
     else:
         std = np.tile(np.asarray(joint_std, dtype=np.float64).reshape(d), n_b)  # row b·d + j → std of joint j
         cov = dev.T @ dev / dof
         lam = cov_reg * float(np.mean(np.diag(cov) * std ** 2))
-        eig, vec = np.linalg.eigh(cov + np.diag(lam / std ** 2 + floor))
+        eig, vec = np.linalg.eigh(cov + np.diag(lam / std ** 2))
         eig, vt = np.clip(eig[::-1], 0.0, None), vec[:, ::-1].T  # largest first
     r = min(latent_dim, vt.shape[0])
     scale = np.zeros(latent_dim)
@@ -232,24 +229,6 @@ def _tied_mixture(x: np.ndarray, k: int, seed: int, iterations: int = 500, rel_t
     return best
 
 
-class ModeOffsets(NamedTuple):
-    """What the MLP residual of a linear part taken within K > 1 modes is trained towards
-    (:func:`deepprompt_ros.training.objectives.loss_fn`), normalized units.
-
-    Attributes
-    ----------
-    offsets : torch.Tensor, shape (D, T, d)
-        Per training demo its mode's mean trajectory minus Φ(x) b at the data's phases.
-    var : torch.Tensor, shape (T, d)
-        The variance of the linear part's prior at each phase and joint, diag(Φ(x) A Aᵀ Φ(x)ᵀ), plus
-        ν² (``ModelConfig.via_noise``): the scale at which a via-point there tells the MLP's offsets
-        apart when the exact conditioning weights its z_nl candidates by their marginal likelihood.
-    """
-
-    offsets: torch.Tensor
-    var: torch.Tensor
-
-
 class PcaInit(NamedTuple):
     """What :func:`init_basis_pca` wrote and what the training needs from it.
 
@@ -258,14 +237,11 @@ class PcaInit(NamedTuple):
     scale : array, shape (k,)
         The standard deviations of the columns of A.
     modes : WeightModes
-        The modes of the training demos' weights the PPCA was taken within.
-    targets : ModeOffsets or None
-        K > 1: the MLP residual's targets; None when K = 1.
+        The modes of the training demos' weights the PPCA was taken within (and the decoder holds).
     """
 
     scale: np.ndarray
     modes: WeightModes
-    targets: ModeOffsets | None
 
 
 @torch.no_grad()
@@ -281,35 +257,29 @@ def init_basis_pca(net: DeepProMPNet, data: TensorData, cov_reg: float = 0.0, ri
     (``basis_cov_reg_units: raw``, :func:`pca_basis`). k is ``latent_linear`` when > 0 (A reads z_lin
     alone), else ``latent_dim``.
 
-    ``n_modes`` K > 1 (``linear_modes``): the demos' weights are grouped into K modes
-    (:func:`weight_modes`, seed ``seed``) and C is their within-mode covariance; each mode's offset from
-    b is left to the MLP residual (:attr:`PcaInit.targets`), which the training fits to within the
-    decoder's σ_y (its reconstruction likelihood): σ_y² is the ``offset_var`` of :func:`pca_basis`."""
+    ``n_modes`` K > 1 (``linear_modes``; ``net`` needs ``decoder_modes`` K): the demos' weights are
+    grouped into K modes (:func:`weight_modes`, seed ``seed``), C is their within-mode covariance, and the
+    decoder's ``mode_offsets`` m_k are each mode's mean weights minus b and ``mode_cumulative_shares``
+    the modes' cumulative shares of the demos."""
     phi = net.basis_functions(data.x.double()).numpy()  # (T, n_b)
     y = data.y.double().numpy()
     k = net.cfg.latent_linear or net.cfg.latent_dim  # the columns of A: z_lin's, or all of z's
     w = basis_weights(phi, y, ridge)
     modes = weight_modes(w, seed, n_modes)
     labels = modes.labels if modes.n_modes > 1 else None
-    # an MLP that holds the offsets between the modes does so within σ_y: the linear part's variance covers it
-    offset_var = 0.0 if net.cfg.decoder_modes else net.cfg.sigma_y ** 2
-    mean, a, scale = pca_basis(phi, y, k, cov_reg, ridge, joint_std, labels, offset_var)
+    if (net.cfg.decoder_modes or 1) != modes.n_modes:
+        raise ValueError(f"init_basis_pca: {modes.n_modes} modes need a network with decoder_modes = "
+                         f"{modes.n_modes if modes.n_modes > 1 else 0}, got decoder_modes {net.cfg.decoder_modes}")
+    mean, a, scale = pca_basis(phi, y, k, cov_reg, ridge, joint_std, labels)
     net.basis.bias.copy_(torch.as_tensor(mean, dtype=torch.float32))
     net.basis.weight.copy_(torch.as_tensor(a, dtype=torch.float32))
-    if labels is None:
-        return PcaInit(scale, modes, None)
-    n, n_b, d = y.shape[0], phi.shape[1], y.shape[2]
-    offsets = np.stack([w[labels == g].mean(0) for g in range(modes.n_modes)]) - mean  # (K, n_b·d)
-    if net.cfg.decoder_modes == modes.n_modes:  # the decoder holds the modes: b + m_k + A z_lin, shares π_k
+    if labels is not None:  # the decoder holds the modes: weights b + m_k + A z_lin, mode k with share π_k
+        offsets = np.stack([w[labels == g].mean(0) for g in range(modes.n_modes)]) - mean  # (K, n_b·d)
         net.mode_offsets.copy_(torch.as_tensor(offsets, dtype=torch.float32))
-        shares = np.bincount(labels, minlength=modes.n_modes) / n
-        net.mode_cumulative_shares.copy_(torch.as_tensor(np.cumsum(shares), dtype=torch.float32))
-        net.mode_cumulative_shares[-1] = 1.0
-        return PcaInit(scale, modes, None)
-    trajectories = np.einsum("tb,nbd->ntd", phi, offsets[labels].reshape(n, n_b, d))
-    var = (np.einsum("tb,bdk->tdk", phi, a.reshape(n_b, d, k)) ** 2).sum(-1) + net.cfg.via_noise ** 2
-    return PcaInit(scale, modes, ModeOffsets(torch.as_tensor(trajectories, dtype=torch.float32),
-                                             torch.as_tensor(var, dtype=torch.float32)))
+        cumulative = np.cumsum(np.bincount(labels, minlength=modes.n_modes)) / labels.size
+        cumulative[-1] = 1.0
+        net.mode_cumulative_shares.copy_(torch.as_tensor(cumulative, dtype=torch.float32))
+    return PcaInit(scale, modes)
 
 
 def linear_map_condition(phi_all: np.ndarray, mean: np.ndarray, a: np.ndarray, sel: np.ndarray, y_via: np.ndarray,

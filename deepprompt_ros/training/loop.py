@@ -178,13 +178,12 @@ def _fit(train_ds: DemoDataset, val_ds: DemoDataset, cfg: TrainConfig, log, run:
     data = to_tensors(train_ds, norm, cfg.n_points)
     val = to_tensors(val_ds, norm, cfg.n_points)
     net = new_network(train_ds, cfg)
-    modes = None  # the MLP residual's targets when the linear part is taken within several modes
     if cfg.decoder_basis and cfg.basis_init == "pca":
-        modes = init_basis_pca(net, data, cfg.basis_cov_reg,
-                               joint_std=np.asarray(norm.y_std) if cfg.basis_cov_reg_units == "raw" else None,
-                               n_modes=cfg.linear_modes, seed=cfg.seed).targets
+        init_basis_pca(net, data, cfg.basis_cov_reg,
+                       joint_std=np.asarray(norm.y_std) if cfg.basis_cov_reg_units == "raw" else None,
+                       n_modes=cfg.linear_modes, seed=cfg.seed)
     opt = new_optimizer(net, cfg)
-    data, val, modes = run.place(net, data, val, modes)  # to the run's device (no copy on the CPU)
+    data, val = run.place(net, data, val)  # to the run's device (no copy on the CPU)
     gen, draws = run.generators(cfg.seed)  # the batch's demos; the inputs given and z (one generator in one process)
     history, best, best_state, done = [], math.inf, None, 0
     key = fit_key(cfg, data_digest(data, val), run.world_size) if ckpt else None
@@ -206,7 +205,7 @@ def _fit(train_ds: DemoDataset, val_ds: DemoDataset, cfg: TrainConfig, log, run:
     for step in range(done + 1, cfg.steps + 1):
         idx = run.share(torch.randint(0, n_train, (cfg.batch_size,), generator=gen, device=gen.device))  # (B / procs,)
         beta = cfg.beta * min(1.0, step / max(1, cfg.kl_anneal_steps))  # KL annealing
-        loss, nll, kl, cons = model(cfg, data, idx, draws, beta, modes)
+        loss, nll, kl, cons = model(cfg, data, idx, draws, beta)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

@@ -28,7 +28,6 @@ import torch
 from deepprompt_ros.model.aggregation import bayesian_aggregate, gaussian_kl
 from deepprompt_ros.model.checkpoint import Normalization
 from deepprompt_ros.model.network import DeepProMPNet
-from deepprompt_ros.training.basis import ModeOffsets
 from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.tensors import TensorData
 
@@ -158,17 +157,8 @@ def consistent_demos(cfg: TrainConfig, data: TensorData, idx, kinds, w_sub) -> t
     return ok | torch.eye(b, dtype=torch.bool)
 
 
-def loss_fn(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, idx, gen, beta: float,
-            modes: ModeOffsets | None = None):
+def loss_fn(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, idx, gen, beta: float):
     """Negative ELBO per trajectory (mean over the batch) plus the sample-consistency term.
-
-    ``modes``, a linear part taken within K > 1 modes (``linear_modes``): the MLP part s·MLP(z_nl, x)
-    of the decoder holds the offsets between the modes. At the ``z`` the reconstruction decodes it is
-    pulled to the demo's own mode offset and, with the consistency term, at each of its samples to the
-    nearest offset of the modes consistent with the subset (a decoder term, like the precision part);
-    both as ½ Σ (error² / ``modes.var``) over phases and joints, the log-weight that the exact
-    conditioning's via-points there give a z_nl candidate with that error
-    (:mod:`deepprompt_ros.primitive.linear_conditioning`).
 
     Returns
     -------
@@ -192,9 +182,6 @@ def loss_fn(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, idx, gen, bet
     y_hat = net.decode(z, data.x)
     nll = 0.5 * ((y - y_hat) ** 2).sum((1, 2)) / cfg.sigma_y ** 2
     loss = nll + beta * kl
-    if modes is not None:  # the MLP part of y_hat at the demo's mode offset
-        part = y_hat - net.decode_linear(z, data.x.expand(z.shape[0], -1))
-        loss = loss + 0.5 * ((part - modes.offsets[idx]) ** 2 / modes.var).sum((1, 2))
     cons = torch.zeros(())
     if cfg.consistency_weight > 0:
         # Sample consistency (Chamfer distance between sets): the M trajectories decoded from
@@ -225,10 +212,6 @@ def loss_fn(net: DeepProMPNet, cfg: TrainConfig, data: TensorData, idx, gen, bet
         okf = ok.squeeze(1).float()
         coverage = (cover * okf).sum(1) / okf.sum(1)
         cons = 0.5 * (precision + coverage) / cfg.sigma_y ** 2
-        if modes is not None:  # each sample's MLP part at the nearest offset of a consistent demo's mode
-            flat = z_p.reshape(-1, z_p.shape[-1])
-            part = y_p - net.decode_linear(flat, data.x.expand(flat.shape[0], -1)).reshape(y_p.shape)
-            cons = cons + 0.5 * torch.where(ok, distances(part, modes.offsets[idx], modes.var), inf).amin(2).mean(1)
         loss = loss + cfg.consistency_weight * cons
     return loss.mean(), nll.mean().item(), kl.mean().item(), cons.mean().item()
 

@@ -12,9 +12,8 @@ steps of :func:`deepprompt_ros.training.loop.train` with the demonstrations read
   (:func:`chunked_validation_mse`, the MSE of :func:`~deepprompt_ros.training.objectives.validation_mse`);
 - ``auto_select``'s cross-validation and the PCA initialization of the linear part on at most
   ``select_max_demos`` training demos (a seeded subset), the residual judged on the validation
-  subset; both subsets recorded in the selection's metadata (``bounded``). With the linear part
-  taken within K > 1 modes, the other training demos get their modes from the subset's
-  (:func:`mode_labels`); one byte per demo is what the training keeps of each.
+  subset; both subsets recorded in the selection's metadata (``bounded``). With K > 1 modes the
+  decoder's modes (their offsets and shares) are the subset's.
 
 Under torchrun (:mod:`deepprompt_ros.training.distributed`, the CPU) each process reads its share of
 every batch, process 0 selects, validates and writes; a sharded training writes no resume file.
@@ -39,7 +38,7 @@ from deepprompt_ros.data.sharded import ShardedDataset
 from deepprompt_ros.model.aggregation import bayesian_aggregate
 from deepprompt_ros.model.checkpoint import Normalization
 from deepprompt_ros.model.network import DeepProMPNet
-from deepprompt_ros.training.basis import ModeOffsets, basis_weights, init_basis_pca
+from deepprompt_ros.training.basis import init_basis_pca
 from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.distributed import SINGLE, Runtime, wrap
 from deepprompt_ros.training.loop import (judge_with_fallback, new_network, new_optimizer, record_validation,
@@ -49,7 +48,7 @@ from deepprompt_ros.training.selection import select_linear_part
 from deepprompt_ros.training.tensors import TensorData, demos_to_tensors, to_tensors
 
 __all__ = ["train_sharded", "streaming_normalization", "ShardBatches", "chunked_validation_mse", "bounded_subset",
-           "mode_labels", "VAL_CHUNK"]
+           "VAL_CHUNK"]
 
 #: Held-out demos encoded at once by the validation.
 VAL_CHUNK = 32
@@ -237,17 +236,12 @@ def _fit(ds: ShardedDataset, train_ids: np.ndarray, val_ids: np.ndarray, select_
     torch.manual_seed(cfg.seed)
     norm = streaming_normalization(ds, train_ids, cfg.n_points)
     net = new_network(ds, cfg)
-    modes = None  # the MLP residual's targets when the linear part is taken within several modes
     if cfg.decoder_basis and cfg.basis_init == "pca":
         sub = to_tensors(DemoDataset(tuple(ds.read(select_ids, images=False)), ds.source), norm, cfg.n_points)
-        init = init_basis_pca(net, sub, cfg.basis_cov_reg,
-                              joint_std=np.asarray(norm.y_std) if cfg.basis_cov_reg_units == "raw" else None,
-                              n_modes=cfg.linear_modes, seed=cfg.seed)
-        if init.targets is not None:  # per training demo its mode's offsets: (K, T, d) and a label per demo
-            labels = mode_labels(ds, train_ids, select_ids, init.modes.labels, net, sub, norm, cfg.n_points)
-            first = [int(np.argmax(init.modes.labels == g)) for g in range(init.modes.n_modes)]
-            modes = (init.targets.offsets[first], torch.as_tensor(labels), init.targets.var)
-        del sub, init
+        init_basis_pca(net, sub, cfg.basis_cov_reg,
+                       joint_std=np.asarray(norm.y_std) if cfg.basis_cov_reg_units == "raw" else None,
+                       n_modes=cfg.linear_modes, seed=cfg.seed)
+        del sub
     opt = new_optimizer(net, cfg)
     gen, draws = run.generators(cfg.seed)  # the batch's demos; the inputs given and z (one generator in one process)
     model = wrap(net, loss_fn, run)  # DDP averages the processes' gradients
@@ -271,8 +265,7 @@ def _fit(ds: ShardedDataset, train_ids: np.ndarray, val_ids: np.ndarray, select_
             except DatasetError as exc:  # re-raised from a worker with its traceback: the message is at its end
                 raise DatasetError(str(exc).rstrip().rpartition("DatasetError: ")[2]) from None
         beta = cfg.beta * min(1.0, step / max(1, cfg.kl_anneal_steps))  # KL annealing
-        batch_modes = None if modes is None else ModeOffsets(modes[0][modes[1][idx].long()], modes[2])
-        loss, nll, kl, cons = model(cfg, data, local, draws, beta, batch_modes)
+        loss, nll, kl, cons = model(cfg, data, local, draws, beta)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -285,37 +278,6 @@ def _fit(ds: ShardedDataset, train_ids: np.ndarray, val_ids: np.ndarray, select_
         net.load_state_dict(best_state)
     net.eval()
     return net, norm, history, best
-
-
-def mode_labels(ds: ShardedDataset, train_ids: np.ndarray, select_ids: np.ndarray, select_labels: np.ndarray,
-                net: DeepProMPNet, select_data: TensorData, norm: Normalization, n_points: int) -> np.ndarray:
-    """The mode (int8) of every training demo ``train_ids`` when the linear part is taken within K > 1
-    modes found on the demos ``select_ids`` (their labels ``select_labels``,
-    :func:`~deepprompt_ros.training.basis.weight_modes`): those keep theirs; every other demo, read
-    in one streaming pass, gets the mode of the tied-covariance Gaussian classifier of the selection's
-    modes (the rule of weight_modes' mixture): argmax_g log π_g − ½ (w − m_g)ᵀ Σ⁻¹ (w − m_g) of its
-    basis weights w (normalized units), with the modes' shares π_g, means m_g and pooled within-mode
-    covariance Σ (plus 1e-6 of its mean variance on the diagonal) of the selection's weights."""
-    phi = net.basis_functions(select_data.x.double()).numpy()  # (T, n_b)
-    w = basis_weights(phi, select_data.y.double().numpy())  # (n_sel, P)
-    k = int(select_labels.max()) + 1
-    means = np.stack([w[select_labels == g].mean(0) for g in range(k)])
-    dev = w - means[select_labels]
-    cov = dev.T @ dev / max(1, len(w) - k)
-    cov += 1e-6 * float(np.mean(np.diag(cov))) * np.eye(cov.shape[0])
-    chol = np.linalg.cholesky(cov)
-    log_share = np.log(np.bincount(select_labels, minlength=k) / len(w))
-    labels = np.empty(len(train_ids), dtype=np.int8)
-    position = {int(i): p for p, i in enumerate(train_ids)}
-    for p, i in enumerate(select_ids):
-        labels[position[int(i)]] = select_labels[p]
-    rest = np.setdiff1d(train_ids, select_ids)
-    for i, demo in ds.iter_shards(rest, images=False):
-        y = (demo.resampled(n_points) - norm.y_mean) / norm.y_std
-        wi = basis_weights(phi, y[None])[0]
-        maha = (np.linalg.solve(chol, (wi - means).T) ** 2).sum(0)  # (K,)
-        labels[position[i]] = int(np.argmax(log_share - 0.5 * maha))
-    return labels
 
 
 def _worker_threads(_worker_id: int):
