@@ -367,6 +367,32 @@ def test_decoder_modes_are_weighed_by_the_exact_likelihood_whatever_the_encoders
         assert np.abs(prim.mean_trajectory(lat, np.array([0.5])) - yv).max() <= 1e-6
 
 
+def test_a_blend_between_two_modes_moves_from_one_offset_to_the_other_without_a_jump():
+    from deepprompt_ros.server.handles import BlendedLatent, ConditionedLatent, Schedule
+    prim, x = decoder_modes_model(shares=(0.5, 1.0))
+    a = prim.condition(np.array([0.5]), np.array([[0.15 + 1.0, 0.075 + 0.5]]))  # the + mode
+    b = prim.condition(np.array([0.5]), np.array([[0.15 - 1.0, 0.075 - 0.5]]))  # the − mode
+    assert prim.mode_of(a.mean) == 1 and prim.mode_of(b.mean) == 0
+    np.testing.assert_array_equal(prim.mode_weights(a), [0.0, 1.0])
+    grid = np.linspace(0.0, 1.0, 201)
+    omega = np.clip((0.55 - grid) / 0.1, 0.0, 1.0)  # a up to x = 0.45, b from x = 0.55, where the modes are 2 apart
+    traj = prim.blend(a, b, omega, grid)
+    np.testing.assert_allclose(traj[0], prim.mean_trajectory(a, grid[:1])[0], atol=1e-9)
+    np.testing.assert_allclose(traj[-1], prim.mean_trajectory(b, grid[-1:])[0], atol=1e-9)
+    # the blended latent's z_nl crosses the modes' threshold inside [0.45, 0.55]: the gate alone would jump by
+    # the modes' distance (2 on joint a) in one step; the weighted offsets spread it over the 20 steps
+    mean, _ = prim.blend_latent(a, b, omega)
+    assert np.abs(np.diff(prim.decode_per_phase(mean, grid), axis=0)).max() > 1.5
+    assert np.abs(np.diff(traj, axis=0)).max() <= 2.0 / 20 + 0.02
+    # the server's blended handle weighs the modes alike (ω from a's to b's)
+    blended = BlendedLatent("p", ConditionedLatent("p", a), ConditionedLatent("p", b),
+                            Schedule(np.array([0.45, 0.55]), np.array([1.0, 0.0])))
+    w = blended.mode_weights_at(grid, prim.mode_weights)
+    np.testing.assert_allclose(w, np.stack([1.0 - omega, omega], 1), atol=1e-12)
+    mean, _ = blended.latent_at(grid)
+    np.testing.assert_allclose(prim.decode_per_phase(mean, grid, w), traj, atol=1e-9)
+
+
 def test_a_context_modelled_per_mode_chooses_the_mode():
     from deepprompt_ros.primitive.linear_context import fit_linear_context
     prim, x = decoder_modes_model(shares=(0.5, 1.0), context_dims=(("side", 1),))

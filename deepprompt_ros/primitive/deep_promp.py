@@ -522,9 +522,17 @@ class DeepProMP:
         """
         return self._np.decode(z, x)
 
-    def decode_per_phase(self, z_x: np.ndarray, x: np.ndarray) -> np.ndarray:
-        """Decode a latent that varies with phase (blending): z_x (T, k), x (T,) → (T, d)."""
-        return self._np.decode_per_phase(z_x, x)
+    def decode_per_phase(self, z_x: np.ndarray, x: np.ndarray, mode_weights: np.ndarray | None = None) -> np.ndarray:
+        """Decode a latent that varies with phase (blending): z_x (T, k), x (T,) → (T, d). With
+        ``decoder_modes``, ``mode_weights`` (T, K) weighs the modes' offsets at each phase instead of the
+        mode each z_x chooses (a blend between two modes; :meth:`mode_weights`)."""
+        return self._np.decode_per_phase(z_x, x, mode_weights)
+
+    def mode_weights(self, latent: LatentGaussian) -> np.ndarray | None:
+        """The one-hot weights (K,) of the decoder's mode that ``latent``'s mean chooses, None for a decoder
+        of one mode: what a blend interpolates (:meth:`blend`)."""
+        k = self.mode_of(latent.mean)
+        return None if k is None else np.eye(self.cfg.decoder_modes)[int(k)]
 
     def decoder_jacobian(self, z: np.ndarray, x: np.ndarray, smoothing: float | None = None):
         """μ_y(z, x_i) and ∂μ_y/∂z at each phase, joint units (see
@@ -637,7 +645,9 @@ class DeepProMP:
             raise ValueError(f"ω(x) must give one weight per phase: got shape {np.shape(w)} for {x.shape[0]} phases")
         mean, var = self.blend_latent(a, b, w)
         z = mean if eps is None else mean + np.asarray(eps)[None, :] * np.sqrt(var)
-        return self.decode_per_phase(z, x)
+        wa, wb = self.mode_weights(a), self.mode_weights(b)
+        modes = None if wa is None else w[:, None] * wa + (1.0 - w[:, None]) * wb  # ω(x) from a's offset to b's
+        return self.decode_per_phase(z, x, modes)
 
     # ------------------------------------------------------------------ refinement
     def refine(self, latent: LatentGaussian, via_x, via_y, joint_mask=None, max_iterations: int = 200,

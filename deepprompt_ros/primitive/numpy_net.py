@@ -273,15 +273,19 @@ class NumpyNet:
         decodes the same preview / control grid again and again). Read-only: do not modify."""
         return self._per_grid(self._pre_x_cache, x, lambda x: self._phase_feats(x) @ self._dec_W1x.T + self._dec.b[0])
 
-    def decode_per_phase(self, z_x: np.ndarray, x: np.ndarray) -> np.ndarray:
-        """Decode a latent that varies with phase (blending): z_x (T, k), x (T,) → (T, d)."""
+    def decode_per_phase(self, z_x: np.ndarray, x: np.ndarray, mode_weights: np.ndarray | None = None) -> np.ndarray:
+        """Decode a latent that varies with phase (blending): z_x (T, k), x (T,) → (T, d); with
+        ``decoder_modes``, ``mode_weights`` (T, K) (rows summing to 1) weighs the modes' offsets instead of
+        the mode each row of z_x chooses."""
         h = self._layer1_phase(x) + z_x[:, self.k_lin:] @ self._W1zT
         np.maximum(h, 0.0, out=h)
         out = self._decode_hidden(h)
         if self.cfg.decoder_basis:  # Σ_b φ_b(x_t)(b_b + A_b z_t), one z per phase
             w = ((z_x[:, :self.k_lin] if self.k_lin else z_x) @ self._basis_AT).reshape(z_x.shape[0], self.cfg.decoder_basis, self.cfg.n_joints) + self._basis_b
-            if self._modes is not None:
+            if self._modes is not None and mode_weights is None:
                 w = w + self._modes[self.mode_of(z_x[:, self.k_lin:])]
+            elif self._modes is not None:
+                w = w + np.einsum("tk,kbd->tbd", np.asarray(mode_weights, dtype=np.float64), self._modes)
             out += np.einsum("tb,tbd->td", self._phi(x), w)
         return out
 

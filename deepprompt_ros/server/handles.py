@@ -127,6 +127,12 @@ class ConditionedLatent:
         return (np.broadcast_to(self.latent.mean, (n, self.latent_dim)),
                 np.broadcast_to(self.latent.var, (n, self.latent_dim)))
 
+    def mode_weights_at(self, x, mode_weights) -> np.ndarray:
+        """The weights of the decoder's modes at phases x (T,), (T, K): ``mode_weights(latent)`` (K,) of
+        this latent on every row (:meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.mode_weights`)."""
+        w = mode_weights(self.latent)
+        return np.broadcast_to(w, (np.shape(x)[0], w.shape[0]))
+
 
 @dataclasses.dataclass(frozen=True)
 class BlendedLatent:
@@ -182,6 +188,14 @@ class BlendedLatent:
         ma, va = self.a.latent_at(x)
         mb, vb = self.b.latent_at(x)
         return blend_gaussians(self.schedule(x), ma, va, mb, vb)
+
+    def mode_weights_at(self, x, mode_weights) -> np.ndarray:
+        """The weights of the decoder's modes at phases x (T,), (T, K): ω(x) times a's plus 1 − ω(x) times
+        b's, so a blend between two modes moves from one offset to the other as ω does (the modes' gate on
+        the blended latent would jump where z_nl crosses a threshold)."""
+        x = np.asarray(x, dtype=np.float64)
+        w = self.schedule(x)[:, None]
+        return w * self.a.mode_weights_at(x, mode_weights) + (1.0 - w) * self.b.mode_weights_at(x, mode_weights)
 
 
 StoredDistribution = Union[ConditionedLatent, BlendedLatent]

@@ -108,7 +108,14 @@ class PrimitiveServerCore:
             return prim.model.decode(z, x)
         mean, var = dist.latent_at(x)
         z = mean if eps is None else mean + eps[None, :] * np.sqrt(var)
-        return prim.model.decode_per_phase(z, x)
+        return prim.model.decode_per_phase(z, x, self._mode_weights(prim, dist, x))
+
+    @staticmethod
+    def _mode_weights(prim: LoadedPrimitive, dist: StoredDistribution, x: np.ndarray) -> np.ndarray | None:
+        """The weights (T, K) of a decoder's modes along a blend (None for one mode)."""
+        if not prim.model.cfg.decoder_modes:
+            return None
+        return dist.mode_weights_at(x, prim.model.mode_weights)
 
     def _samples(self, prim: LoadedPrimitive, dist: StoredDistribution, x: np.ndarray, n: int,
                  seed: int) -> np.ndarray:
@@ -121,7 +128,9 @@ class PrimitiveServerCore:
         z = mean[None] + eps[:, None, :] * np.sqrt(var)[None]  # (n, T, k)
         # one (n T) x k matrix through the decoder: a single matrix product per layer (faster than
         # numpy's stacked 3-D matmul for these sizes)
-        y = prim.model.decode_per_phase(z.reshape(n * t, k), np.tile(x, n))
+        modes = self._mode_weights(prim, dist, x)
+        y = prim.model.decode_per_phase(z.reshape(n * t, k), np.tile(x, n),
+                                        None if modes is None else np.tile(modes, (n, 1)))
         return y.reshape(n, t, -1)
 
     def _preview(self, prim: LoadedPrimitive, dist: StoredDistribution, n_points: int) -> Preview:
