@@ -31,9 +31,8 @@ run-dual: setup
 	$(PY) -m deepprompt_ros.run_main --launch dual_arm
 
 # Train the shipped primitives in models/ (seeded: the same command gives the same weights and choices;
-# the metadata's creation time and wall time differ): train-reach and train-shake give
-# models/gen3_lite_reach and models/wam_shake; train-sine gives a model of models/bimodal_sine's
-# configuration whose selection differs from the shipped file's (EXPERIMENTS.md, section 6).
+# the metadata's creation time and wall time differ): train-sine, train-reach and train-shake give
+# models/bimodal_sine, models/gen3_lite_reach and models/wam_shake.
 TRAIN := $(PY) -m deepprompt_ros.training.cli
 models: train-sine train-reach train-shake
 train-sine: setup

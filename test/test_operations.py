@@ -175,8 +175,10 @@ def test_unreachable_via_points_return_best_fit_and_residual(sine):
     xv = np.array([0.25, 0.25])
     yv = np.array([[1.0], [-1.0]])  # the same phase cannot be at +1 and −1
     res = sine.refine(sine.condition(xv, yv), xv, yv)
-    assert not res.reachable and res.max_error == pytest.approx(1.0, abs=1e-3)
-    assert "stationary" in res.reason or res.reason == "budget"
+    # the best fit y(0.25) = 0 misses both by 1; the refinement keeps a latent only when it lowers the error by
+    # 10 %: within 1 % of it
+    assert not res.reachable and 1.0 <= res.max_error <= 1.01, res.max_error
+    assert "stationary" in res.reason or "budget" in res.reason, res.reason
     res2 = sine.refine(sine.prior(), [0.5], [[40.0]])  # far outside anything the primitive can do
     assert not res2.reachable and res2.max_error > 1.0
     achieved = sine.mean_trajectory(res2.latent, [0.5])[0, 0]
