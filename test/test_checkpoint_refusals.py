@@ -364,3 +364,23 @@ def test_bad_baseline_files_are_refused(baselines, tmp_path, kind, case):
     for load in (cls.load, load_model):
         with pytest.raises(ValueError, match=message):
             load(bad)
+
+
+def test_a_decoder_of_modes_refuses_bad_shares_and_a_context_model_without_a_mean_per_mode(tmp_path):
+    cfg = ModelConfig(n_joints=1, latent_dim=3, hidden=8, decoder_basis=4, latent_linear=2, decoder_modes=2,
+                      context_dims=(("mode", 1),))
+    net = DeepProMPNet(cfg)
+    norm = Normalization(np.zeros(1), np.ones(1), {"mode": np.zeros(1)}, {"mode": np.ones(1)})
+    path = save_checkpoint(tmp_path / "modes.safetensors", net, norm, ["a"])
+    np.testing.assert_allclose(load_checkpoint(path).build().mode_cumulative_shares.numpy(), [0.5, 1.0])
+    meta, tensors = _contents(path)
+    for shares in ([0.6, 0.4], [0.5, 0.9], [0.0, 1.0]):
+        bad = _write(tmp_path / "bad.safetensors", meta,
+                     {**tensors, "net.mode_cumulative_shares": torch.tensor(shares)})
+        with pytest.raises(CheckpointError, match="mode_cumulative_shares.*strictly rising in \\(0, 1\\] and ending at 1"):
+            load_checkpoint(bad)
+    one_mean = {"names": ["mode"], "dims": [1], "mean": [0.0], "scale": [1.0], "b": [[0.0, 0.0]], "r": [[1.0]]}
+    with pytest.raises(ValueError, match="a mean for 0 modes, the decoder 2 modes"):
+        DeepProMP(net, norm, ["a"], metadata={"selection": {"context": {"linear": one_mean}}})
+    DeepProMP(net, norm, ["a"], metadata={"selection": {"context": {"linear": {**one_mean,
+                                                                                "mode_means": [[-1.0], [1.0]]}}}})

@@ -93,7 +93,7 @@ def test_train_command_on_shards_writes_a_model_that_loads(data, tmp_path):
     assert max_weight_difference(ckpt.build(), same) == 0.0
 
 
-#: the bimodal sines with the linear part taken within their two modes (the MLP holds the offsets)
+#: the bimodal sines with the linear part taken within their two modes (the decoder holds the offsets)
 MODES_CFG = dataclasses.replace(CFG, decoder_basis=10, latent_linear=4, latent_dim=5, linear_modes=2, n_val=10,
                                 steps=30, val_every=30)
 

@@ -185,17 +185,17 @@ def test_modes_are_kept_over_one_mode_only_where_they_score_better():
 
 
 @pytest.mark.parametrize("judge_modes", [False, True])
-def test_judge_modes_false_keeps_modes_whose_residual_is_kept_without_the_training_with_one_mode(judge_modes):
-    """With ``judge_modes`` false the two-mode model whose residual the validation keeps is served as it
-    is: no training with one mode runs and the record says why; true: that training runs."""
-    from test_linear_conditioning import bimodal_model
-    several, x = bimodal_model()
+def test_judge_modes_false_keeps_the_modes_at_their_chosen_noise_without_the_training_with_one_mode(judge_modes):
+    """With ``judge_modes`` false the two-mode model is served with the via-point noise that fits the
+    validation demos best: no training with one mode runs and the record says why; true: that training runs."""
+    from test_linear_conditioning import decoder_modes_model
+    several, x = decoder_modes_model(shares=(0.5, 1.0))
     _, y_val = _bimodal_demos(12, 2)
     val = DemoDataset(tuple(demo_from_arrays(f"v{i}", x * 4.0, y_val[i], ["a", "b"]) for i in range(len(y_val))))
     cfg = TrainConfig(n_points=50, linear_modes=2, judge_modes=judge_modes, latent_dim=17, decoder_basis=8,
-                      latent_linear=16)
+                      latent_linear=16, via_noise=1.0)
     selection = {"linear_part": {"decoder_basis": 8, "latent_linear": 16, "latent_dim": 17, "basis_cov_reg": 0.05,
-                                 "basis_cov_reg_units": "normalized", "via_noise": 1e-3, "method": "by hand",
+                                 "basis_cov_reg_units": "normalized", "via_noise": 1.0, "method": "by hand",
                                  "linear_modes": 2}}
     calls, lines = [], []
 
@@ -213,7 +213,11 @@ def test_judge_modes_false_keeps_modes_whose_residual_is_kept_without_the_traini
         assert calls == [1]
         return
     out_cfg, (net, _, _, _) = run()
-    assert calls == [] and selection["residual"]["kept"] and net is several.net
-    assert out_cfg.linear_modes == 2 and out_cfg.residual_scale == several.net.cfg.residual_scale
-    assert selection["modes_fallback"]["kept_modes"] and "judge_modes false" in selection["modes_fallback"]["reason"]
+    record = selection["modes_fallback"]
+    assert calls == [] and out_cfg.linear_modes == 2 and net.cfg.decoder_modes == 2
+    mse = record["noise"]["mse_random_via_points"]
+    assert net.cfg.via_noise == out_cfg.via_noise == record["noise"]["via_noise"] == float(min(mse, key=mse.get))
+    from deepprompt_ros.training.basis import CV_VIA_NOISES
+    assert sorted(mse) == sorted(f"{v:g}" for v in CV_VIA_NOISES) and max(mse.values()) > min(mse.values())
+    assert record["kept_modes"] and "judge_modes false" in record["reason"]
     assert "linear_modes 2 (judge_modes false" in lines[-1]

@@ -208,6 +208,11 @@ def load_checkpoint(path) -> Checkpoint:
     check_tensors(tensors, shapes, path, f"its model config ({cfg.n_joints} joints, latent_dim {cfg.latent_dim}, "
                   f"hidden {cfg.hidden}, decoder_basis {cfg.decoder_basis}, latent_linear {cfg.latent_linear})",
                   CheckpointError)
+    if cfg.decoder_modes:  # the modes' cumulative shares: rising within (0, 1], the last 1
+        cum = tensors["net.mode_cumulative_shares"].double()
+        if not (bool((cum > 0).all()) and bool((cum[1:] > cum[:-1]).all()) and abs(float(cum[-1]) - 1.0) <= 1e-6):
+            raise CheckpointError(f"model file '{path}': tensor 'net.mode_cumulative_shares' is {cum.tolist()}; "
+                                  "expected the modes' cumulative shares, strictly rising in (0, 1] and ending at 1")
     norm = read_normalization(tensors, cfg.n_joints, cfg.context_dims, path, CheckpointError)
     state = {k[4:]: v for k, v in tensors.items() if k.startswith("net.")}
     ck = Checkpoint(cfg, state, norm, joint_names, extra)

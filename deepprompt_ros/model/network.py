@@ -3,8 +3,9 @@ the per-element (μ_i, σ²_i) that :func:`deepprompt_ros.model.aggregation.baye
 combines, and an MLP decoder μ_y(z, x) — optionally a residual over a linear basis,
 μ_y(z, x) = Φ(x)(b + A z) + s·MLP(z, x) (``ModelConfig.decoder_basis``; the linear part alone is a
 PPCA-style ProMP in the latent), or with the latent split into a linear and a nonlinear block
-(``ModelConfig.latent_linear``), μ_y(z, x) = Φ(x)(b + A z_lin) + s·MLP(z_nl, x). The phase enters
-through :mod:`deepprompt_ros.model.phase`.
+(``ModelConfig.latent_linear``), μ_y(z, x) = Φ(x)(b + A z_lin) + s·MLP(z_nl, x), and with several
+modes (``ModelConfig.decoder_modes``) μ_y(z, x) = Φ(x)(b + m_k + A z_lin) + s·MLP(z_nl, x), the mode k
+chosen by the first coordinate of z_nl. The phase enters through :mod:`deepprompt_ros.model.phase`.
 
 All tensors here are in *normalized* units (joint positions and low-dim contexts standardized
 with the training set's statistics); :mod:`deepprompt_ros.primitive.deep_promp` converts to and from
@@ -306,7 +307,8 @@ class DeepProMPNet(nn.Module):
 
     def decode_linear(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """The linear part Φ(x)(b + A z): z (B, k), x (B, T) → (B, T, d); with ``latent_linear`` k_l > 0
-        it reads z_lin = z[:, :k_l] only."""
+        it reads z_lin = z[:, :k_l] only; with ``decoder_modes`` it is Φ(x)(b + m_k + A z_lin), k the mode
+        of z (:meth:`mode_of`)."""
         k_l = self.cfg.latent_linear
         w = self.basis(z[:, :k_l] if k_l else z)
         if self.cfg.decoder_modes:  # b + m_k + A z_lin, k the mode z_nl chooses

@@ -122,6 +122,11 @@ class DeepProMP:
             raise ValueError(f"model '{self.name}': the linear context model of {dict(zip(lin.names, lin.dims))} "
                              f"(B {lin.b.shape}) does not fit the model (latent_linear {self.cfg.latent_linear}, "
                              f"contexts {dict(self._context_dims)})")
+        k_m = 0 if lin.mode_means is None else lin.mode_means.shape[0]
+        if k_m != self.cfg.decoder_modes:
+            raise ValueError(f"model '{self.name}': the linear context model has a mean for {k_m} modes, the decoder "
+                             f"{self.cfg.decoder_modes} modes (decoder_modes); expected one mean per mode of the "
+                             "decoder (none for one mode)")
         return lin
 
     # ------------------------------------------------------------------ construction
@@ -479,13 +484,23 @@ class DeepProMP:
         if self._split and context_rows is not None:
             # q(z | contexts, images) with the linear contexts' exact posterior of z_lin (its diagonal) is the
             # prior of MAP refinement and of the re-conditioning of refine_linear; without a via-point it is the
-            # distribution itself
-            ctx = condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, np.zeros(0),
-                                  np.zeros((0, self.n_joints)), None, None, 1.0, 0 if has_via else n_candidates,
-                                  context_rows=context_rows)
-            lat = condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, *via[:3], observed, noise,
-                                  n_candidates, context_rows=context_rows, smooth_noise=smooth) if has_via else ctx
+            # distribution itself. With several modes that prior is the one of the mode the via-points and
+            # contexts chose (the contexts' model has a mean per mode).
+            def given_contexts(n, candidates=None):
+                return condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, np.zeros(0),
+                                       np.zeros((0, self.n_joints)), None, None, 1.0, n, candidates_nl=candidates,
+                                       context_rows=context_rows)
             k_l = self.cfg.latent_linear
+            if not has_via:
+                ctx = lat = given_contexts(n_candidates)
+            elif self._np.has_modes:
+                lat = condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, *via[:3], observed, noise,
+                                      n_candidates, context_rows=context_rows, smooth_noise=smooth)
+                ctx = given_contexts(0, lat.mean[None, k_l:])
+            else:
+                ctx = given_contexts(0)
+                lat = condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, *via[:3], observed, noise,
+                                      n_candidates, context_rows=context_rows, smooth_noise=smooth)
             return lat.with_context(np.concatenate([ctx.mean[:k_l], q_c.mean[k_l:]]),
                                     np.concatenate([ctx.var[:k_l], q_c.var[k_l:]]))
         # no observed joint of a via-point of weight > 0: the aggregation is the distribution

@@ -75,7 +75,8 @@ class LinearBlock:
         Max |mean − via-point| (joint units) of the ``mean`` latent over the observed joints of the
         via-points it was conditioned on (of weight > 0).
     nl_var : array, shape (k − k_l,)
-        The variance of q(z_nl), the candidates' proposal.
+        The variance of q(z_nl), the candidates' proposal (with ``decoder_modes``: the prior's, and
+        ``MODE_GATE_VAR`` for the coordinate that chooses the mode).
     """
 
     scale: np.ndarray

@@ -54,12 +54,17 @@ if TYPE_CHECKING:
     from deepprompt_ros.primitive.numpy_net import NumpyNet
 
 __all__ = ["whitened_posterior", "condition_split", "smallest_change", "linear_block_variance", "SplitRefinement",
-           "refine_split", "TIE_TOLERANCE", "normal_points"]
+           "refine_split", "TIE_TOLERANCE", "MODE_GATE_VAR", "normal_points", "mode_candidates"]
 
 #: Candidates of z_nl whose log posterior densities are within this relative amount of the best are
 #: tied (rounding, not evidence); the executed mean is the first of them, the mean of q_all(z_nl) when
 #: it is among them.
 TIE_TOLERANCE = 1e-9
+#: With several modes (``decoder_modes``): the variance a conditioned latent records for z_nl's first
+#: coordinate, whose candidates sit at their modes' medians (:func:`mode_candidates`). Small against the
+#: distance of a median to its interval's edges (>= 0.12 for shares >= 0.1), so a latent perturbed by its
+#: recorded spread keeps its mode.
+MODE_GATE_VAR = 1e-4
 
 
 def whitened_posterior(g: np.ndarray, d: np.ndarray, with_loglik: bool = True, gram: np.ndarray | None = None,
@@ -198,6 +203,40 @@ def _candidates(mean_nl: np.ndarray, var_nl: np.ndarray, n: int, seed: int) -> n
     return out
 
 
+def mode_candidates(net: "NumpyNet", prior_mean: np.ndarray, prior_var: np.ndarray, n: int, seed: int) -> np.ndarray:
+    """The candidates of z_nl of a decoder of several modes (``decoder_modes`` K), (C, k − k_l), each with its
+    first coordinate (the mode's) at the median of its mode's interval (:attr:`NumpyNet.mode_medians`): K
+    candidates, one per mode, the rest of z_nl at the prior mean, when the decoder reads z_nl through the
+    mode alone (no MLP residual) — the exact mixture; else the ``n`` quasi-random points of the prior and its
+    mean (:func:`_candidates`), each moved to its mode's median."""
+    if not net.mlp_active or n <= 0:
+        out = np.repeat(prior_mean[None], net.cfg.decoder_modes, 0)
+        out[:, 0] = net.mode_medians
+        return out
+    out = _candidates(prior_mean, prior_var, n, seed)
+    out[:, 0] = net.mode_medians[net.mode_of(out)]
+    return out
+
+
+def _mode_weights(net: "NumpyNet", candidates_nl: np.ndarray, loglik: np.ndarray, prior_mean: np.ndarray,
+                  prior_var: np.ndarray) -> tuple[np.ndarray, int]:
+    """(weights (C,), best) of the candidates of :func:`mode_candidates`: one per mode, the weight ∝ π_k times
+    the exact likelihood (the posterior of the mode); points of the prior, ∝ the likelihood (importance
+    sampling from the prior). The best: in the mode of the largest posterior weight, the candidate of the
+    highest posterior density of z_nl's other coordinates (the first within rounding, TIE_TOLERANCE)."""
+    mode = net.mode_of(candidates_nl)
+    exact = candidates_nl.shape[0] == net.cfg.decoder_modes and np.array_equal(mode, np.arange(mode.size))
+    log_w = loglik + (net.mode_log_shares if exact else 0.0)
+    weights = np.exp(log_w - log_w.max())
+    weights /= weights.sum()
+    top_mode = int(np.argmax(np.bincount(mode, weights=weights, minlength=net.cfg.decoder_modes)))
+    log_post = loglik - 0.5 * ((candidates_nl[:, 1:] - prior_mean[1:]) ** 2 / prior_var[1:]).sum(1)
+    log_post = np.where(mode == top_mode, log_post, -np.inf)
+    top = log_post.max()
+    best = int(np.flatnonzero(log_post >= top - TIE_TOLERANCE * max(1.0, abs(top)))[0])
+    return weights, best
+
+
 def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.ndarray, all_mean: np.ndarray,
                     all_var: np.ndarray, x: np.ndarray, y: np.ndarray, w: np.ndarray, mask: np.ndarray,
                     noise: float, n_candidates: int = 32, seed: int = 0,
@@ -212,7 +251,8 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
     context_mean, context_var : array, shape (k,)
         q_c(z), the aggregation of contexts and images only; its z_lin block is the prior of z_lin.
     all_mean, all_var : array, shape (k,)
-        The aggregation of everything (via-points included); its z_nl block proposes the candidates.
+        The aggregation of everything (via-points included); its z_nl block proposes the candidates (with
+        ``decoder_modes`` the prior does: :func:`mode_candidates`).
     x : array, shape (n,); y : array, shape (n, d) joint units
     w : array, shape (n,), ω >= 0, or None (every ω = 1)
     mask : array of bool, shape (n, d), or None (every joint of every via-point)
@@ -220,8 +260,8 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
     noise : float
         ν, the via-point standard deviation in normalized joint units (ω scales the precision).
     n_candidates : int
-        Quasi-random points of q(z_nl) besides its mean (none when the MLP cannot depend on z_nl: k_l = k or
-        residual_scale 0).
+        Quasi-random points of q(z_nl) besides its mean (none when the decoder does not read z_nl: k_l = k, or
+        residual_scale 0 without modes; one per mode with modes and residual_scale 0).
     seed : int
         Of the points' random shift (the same request gives the same latent).
     candidates_nl : array, shape (C, k − k_l), optional
@@ -248,16 +288,19 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
     m, s = context_mean[:k_l], np.sqrt(context_var[:k_l])
     # the prior of z_nl, q_c; with several modes its first coordinate, which chooses the mode, N(0, 1) whatever
     # the encodings say (the modes are told apart by the exact likelihoods alone), and the proposal of the
-    # candidates that prior (it covers every mode in its share); else q_all
+    # candidates that prior; else q_all
     prior_mean, prior_var = context_mean[k_l:], context_var[k_l:]
     prop_mean, prop_var = all_mean[k_l:], all_var[k_l:]
-    if net.has_modes:
+    modes = net.has_modes
+    if modes:
         prior_mean, prior_var = prior_mean.copy(), prior_var.copy()
         prior_mean[0], prior_var[0] = 0.0, 1.0
         prop_mean, prop_var = prior_mean, prior_var
     if candidates_nl is None:
         if not net.decoder_reads_z_nl:
             candidates_nl = all_mean[None, k_l:]
+        elif modes:
+            candidates_nl = mode_candidates(net, prior_mean, prior_var, n_candidates, seed)
         else:
             candidates_nl = _candidates(prop_mean, prop_var, n_candidates, seed)
     if x.shape[0] == 0:  # no via-point: the context rows alone
@@ -312,6 +355,8 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
         return _overflow(net.cfg.latent_dim, context_mean, context_var)
     if single:
         weights, best = np.ones(1), 0
+    elif modes:
+        weights, best = _mode_weights(net, candidates_nl, loglik, prior_mean, prior_var)
     else:
         # the posterior ∝ p(via-points | z_nl) q_c(z_nl): the executed mean is the candidate of the highest
         # posterior density (the first within rounding of it, TIE_TOLERANCE: the same choice on every
@@ -352,9 +397,13 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
     cands = np.concatenate([z_lin, candidates_nl], 1)  # (C, k)
     # the best candidate's mean at the observed joints of the via-points: offset + H z_lin (joint units)
     via_error = float(np.abs(r[best] - h @ cands[best, :k_l]).max()) if h.shape[0] else 0.0
+    nl_var = all_var[k_l:]
+    if modes:  # the prior's, the mode's coordinate narrow: a latent perturbed by its spread keeps its mode
+        nl_var = prior_var.copy()
+        nl_var[0] = MODE_GATE_VAR
     block = LinearBlock(scale=s, candidates=cands, weights=weights, chol=chol,
                         design=g if form == "observation" else None, form=form, noise=float(noise),
-                        via_error=via_error, nl_var=all_var[k_l:])
+                        via_error=via_error, nl_var=nl_var)
     # (the variance: from the block when it is read)
     return LatentGaussian(cands[best].copy(), linear=block, context_mean=context_mean, context_var=context_var)
 

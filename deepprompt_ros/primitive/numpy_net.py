@@ -13,6 +13,7 @@ T = phases, d = joints, k = latent dimension, h = hidden width, n_b = basis func
 """
 from __future__ import annotations
 
+import statistics
 from typing import Callable
 
 import numpy as np
@@ -85,7 +86,12 @@ class NumpyNet:
         if self.cfg.decoder_modes:
             ystd = np.asarray(normalization.y_std, dtype=np.float64)
             self._modes = net.mode_offsets.detach().double().numpy().reshape(-1, nb, d) * ystd
-            self._mode_thresholds = np.asarray(mode_thresholds(net.mode_cumulative_shares.tolist()))
+            cumulative = [0.0] + [float(v) for v in net.mode_cumulative_shares.tolist()]
+            self._mode_thresholds = np.asarray(mode_thresholds(cumulative[1:]))
+            inv = statistics.NormalDist().inv_cdf
+            #: the median of each mode's interval of the first z_nl coordinate, and log π_k
+            self.mode_medians = np.array([inv(0.5 * (a + b)) for a, b in zip(cumulative[:-1], cumulative[1:])])
+            self.mode_log_shares = np.log(np.maximum(np.diff(cumulative), 1e-300))
             self._mode_cache: dict[bytes, np.ndarray] = {}
         self._phi_cache: dict[bytes, np.ndarray] = {}
         k_n = self.cfg.latent_nonlinear
@@ -142,6 +148,11 @@ class NumpyNet:
         """Whether the decoder's output depends on z_nl = z[k_l:]: through the MLP (not when z_nl is
         empty or the residual's factor s is 0) or through the mode it chooses (``decoder_modes``)."""
         return self.cfg.latent_nonlinear > 0 and (not self._no_mlp or self._modes is not None)
+
+    @property
+    def mlp_active(self) -> bool:
+        """Whether the decoder's MLP residual is on (a residual factor s > 0, or no linear basis)."""
+        return not self._no_mlp
 
     @property
     def has_modes(self) -> bool:

@@ -1,6 +1,6 @@
 """The linear part Φ(x)(b + A z) of a residual decoder (``TrainConfig.decoder_basis``): its
 initialization as the PPCA of the demonstrations, the modes of the demonstrations' basis weights
-(:func:`weight_modes`, ``TrainConfig.linear_modes``) that the PPCA then leaves to the MLP, the
+(:func:`weight_modes`, ``TrainConfig.linear_modes``) whose offsets the PPCA leaves to the decoder's modes, the
 closed-form MAP conditioning of that linear model, and the cross-validation of its hyper-parameters
 on the training demonstrations alone. numpy float64 except :func:`init_basis_pca`, which writes into
 the network.

@@ -54,7 +54,7 @@ class TrainConfig:
                                     "decoder_basis, latent_linear, basis_cov_reg, basis_cov_reg_units and "
                                     "via_noise by cross-validation of the linear part, linear_modes by the modes "
                                     "of the demos' basis weights, latent_dim = latent_linear + latent_nonlinear "
-                                    "(latent_linear + linear_modes - 1 with several modes), the linear part "
+                                    "(with several modes the first z_nl dimension chooses the mode), the linear part "
                                     "initialized as their PPCA and kept fixed (basis_init pca, "
                                     "basis_lr_scale 0), then the MLP residual kept (residual_scale) or dropped (0) "
                                     "on the validation demos (with linear_modes > 1 the modes' via-point noise is "

@@ -124,7 +124,9 @@ def judge_with_fallback(cfg: TrainConfig, fitted: tuple, selection: dict, log, f
     net, norm, history, best = fitted
     net, selection["residual"] = judge(net, norm, cfg)
     if cfg.linear_modes > 1 and not cfg.judge_modes:
-        selection["modes_fallback"] = {"linear_modes": cfg.linear_modes, "kept_modes": True,
+        net, noise = run.broadcast(choose_mode_noise(net, norm, joint_names, val_ds, cfg) if run.is_main else None)
+        cfg = dataclasses.replace(cfg, via_noise=noise["via_noise"])
+        selection["modes_fallback"] = {"linear_modes": cfg.linear_modes, "kept_modes": True, "noise": noise,
                                        "reason": "judge_modes false: kept without the training with one mode"}
     elif cfg.linear_modes > 1:
         several, modes_cfg, modes_fitted = selection.pop("residual"), cfg, (net, norm, history, best)

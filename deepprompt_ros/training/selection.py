@@ -208,10 +208,11 @@ def _residual_scores(net: DeepProMPNet, norm: Normalization, joint_names, demos:
     return _pair_scores(on, on.with_residual_scale(0.0), demos, cfg, extras)
 
 
-def _pair_scores(on: DeepProMP, off: DeepProMP, demos: DemoDataset, cfg: TrainConfig,
-                 extras: bool) -> tuple[np.ndarray, np.ndarray]:
+def _pair_scores(on: DeepProMP, off: DeepProMP | None, demos: DemoDataset, cfg: TrainConfig,
+                 extras: bool, samples: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """:func:`_residual_scores` of two primitives ``on`` and ``off`` (index 0 and 1), in the units of
-    ``on``'s normalization."""
+    ``on``'s normalization; ``off`` None scores ``on`` alone (index 0; index 1 stays 0), ``samples``
+    False the means alone (the energy scores stay 0)."""
     norm = on.norm
     x = np.linspace(0.0, 1.0, cfg.n_points)
     std = np.asarray(norm.y_std, dtype=np.float64)
@@ -227,12 +228,13 @@ def _pair_scores(on: DeepProMP, off: DeepProMP, demos: DemoDataset, cfg: TrainCo
         conds = [dict(via_x=x[sel], via_y=y[sel]) for sel in sets]
         if extras:
             conds.append(dict(via_x=x[:1], via_y=y[:1], contexts=demo.contexts or None, images=demo.images))
-        for m, prim in enumerate((on, off)):
+        for m, prim in enumerate((on, off) if off is not None else (on,)):
             for c, kw in enumerate(conds):
                 lat = prim.condition(**kw)
                 mse[m, c, i] = float(((prim.mean_trajectory(lat, x) - y) ** 2).mean())
-                s = prim.sample(lat, x, RESIDUAL_SAMPLES, np.random.default_rng([cfg.seed, 11, i, c]))
-                es[m, c, i] = energy_score(s / std, y / std) / root
+                if samples:
+                    s = prim.sample(lat, x, RESIDUAL_SAMPLES, np.random.default_rng([cfg.seed, 11, i, c]))
+                    es[m, c, i] = energy_score(s / std, y / std) / root
     # the random via-point sets count as one conditioning: their mean
     per = lambda e: np.concatenate([e[:, :1], e[:, 1:1 + RESIDUAL_DRAWS].mean(1, keepdims=True),  # noqa: E731
                                     e[:, 1 + RESIDUAL_DRAWS:]], 1)
@@ -270,7 +272,7 @@ def choose_mode_noise(net: DeepProMPNet, norm: Normalization, joint_names, val_d
     mse = {}
     for noise in CV_VIA_NOISES:
         prim = DeepProMP(with_via_noise(net, noise), norm, joint_names)
-        mse[noise] = float(_pair_scores(prim, prim, val_ds, cfg, False)[1][0, 1].mean())
+        mse[noise] = float(_pair_scores(prim, None, val_ds, cfg, False, samples=False)[1][0, 1].mean())
     best = min(mse, key=lambda v: mse[v])
     return with_via_noise(net, best), {"via_noise": best, "judged_on": "validation demos",
                                        "mse_random_via_points": {f"{k:g}": v for k, v in mse.items()}}
