@@ -311,9 +311,11 @@ def test_ambiguous_via_points_keep_both_modes():
     assert np.abs(s[:, [0, 2]] - yv).max() <= 5 * prim.cfg.via_noise  # every sample passes both via-points
 
 
-def decoder_modes_model(shares=(0.3, 1.0), encoder_z_nl=(0.5, 1000.0), context_dims=()):
+def decoder_modes_model(shares=(0.3, 1.0), encoder_z_nl=(0.5, 1000.0), context_dims=(),
+                        shape=lambda x: np.sin(np.pi * x)):
     """The two modes of :func:`bimodal_model` held by the decoder (``decoder_modes`` 2, no MLP): the
-    modes' offsets m_k the basis weights of ±sin(πx)·(1, 0.5), chosen by z_nl below / above the normal
+    modes' offsets m_k the basis weights of ±shape(x)·(1, 0.5) (sin πx: the modes meet at x = 0 and 1),
+    chosen by z_nl below / above the normal
     quantile of ``shares[0]``. ``encoder_z_nl`` (μ, softplus⁻¹ σ²) is what every encoder says of z_nl;
     ``context_dims`` adds (random) context encoders."""
     prim, x = bimodal_model()
@@ -322,7 +324,7 @@ def decoder_modes_model(shares=(0.3, 1.0), encoder_z_nl=(0.5, 1000.0), context_d
     net = DeepProMPNet(cfg)
     net.load_state_dict(prim.net.state_dict(), strict=False)  # the modes' buffers and context encoders: below / random
     phi = phase_basis(x, 8, 1.0, False)
-    w = np.linalg.lstsq(phi, np.sin(np.pi * x)[:, None] * np.array([1.0, 0.5]), rcond=None)[0].reshape(-1)
+    w = np.linalg.lstsq(phi, shape(x)[:, None] * np.array([1.0, 0.5]), rcond=None)[0].reshape(-1)
     with torch.no_grad():
         net.mode_offsets.copy_(torch.as_tensor(np.stack([-w, w])))
         net.mode_cumulative_shares.copy_(torch.as_tensor(shares))

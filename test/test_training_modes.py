@@ -114,19 +114,18 @@ def test_the_selection_records_the_modes_it_chose():
 
 
 # ----------------------------------------------------------------------------- training with the modes
-def test_the_decoder_holds_the_modes_and_they_are_kept_beside_a_dropped_residual(tmp_path):
+def test_the_decoder_holds_the_modes_beside_a_dropped_residual(tmp_path):
     # one update at a learning rate of 1 leaves the MLP residual garbage: the energy score drops it; the modes
-    # are in the decoder (b + m_k + A z_lin), so the mixture of the modes' linear parts is compared with the
-    # training of one mode and kept: its samples from the zero crossings lie on the modes
+    # are in the decoder (b + m_k + A z_lin), kept (judge_modes false): the samples from the zero crossings
+    # lie on the modes
     ds = bimodal_sine(40, n_points=T, seed=4)
     cfg = TrainConfig(n_points=T, cv_folds=3, latent_nonlinear=2, hidden=8, steps=1, val_every=1, batch_size=4,
-                      lr=1.0, threads=1, max_via_points=5)
+                      lr=1.0, threads=1, max_via_points=5, judge_modes=False)
     info = {}
     net, norm, _ = train(ds, cfg, out_path=tmp_path / "m.safetensors", info=info, log=lambda s: None)
     sel = info["selection"]
     assert sel["linear_part"]["linear_modes"] == 2
-    assert not sel["modes_fallback"]["residual"]["kept"] and sel["modes_fallback"]["kept_modes"], sel["modes_fallback"]
-    assert sel["modes_fallback"]["relative_difference"] + sel["modes_fallback"]["standard_error"] < 0
+    assert not sel["residual"]["kept"] and sel["modes_fallback"]["kept_modes"], sel
     assert info["train_config"]["linear_modes"] == 2 and net.cfg.decoder_modes == 2 and net.cfg.residual_scale == 0.0
     assert sel["modes_fallback"]["noise"]["via_noise"] == net.cfg.via_noise
     # the served linear part: the PPCA within the modes, each mode's offset the mean of its demos' weights
@@ -150,22 +149,28 @@ def test_the_decoder_holds_the_modes_and_they_are_kept_beside_a_dropped_residual
 
 
 # ----------------------------------------------------------------------------- modes against one mode
-def _bimodal_demos(n, seed):
-    """Demos of the hand-built two-mode model of test_linear_conditioning: a ramp with small variations
-    plus ±sin(πx)·(1, 0.5), half of each sign."""
+def _bimodal_demos(n, seed, shape=lambda x: np.sin(np.pi * x)):
+    """Demos of the hand-built two-mode models of test_linear_conditioning: a ramp with small variations
+    plus ±shape(x)·(1, 0.5), half of each sign."""
     rng = np.random.default_rng(seed)
     x = np.linspace(0, 1, 50)
     sign = np.where(np.arange(n) % 2 == 0, 1.0, -1.0)
     y = (0.3 * x[None, :, None] * np.array([1.0, 0.5]) + rng.normal(0, 0.05, (n, 1, 2)) * x[None, :, None]
          + rng.normal(0, 0.05, (n, 1, 2)) * (x ** 2)[None, :, None]
-         + sign[:, None, None] * np.sin(np.pi * x)[None, :, None] * np.array([1.0, 0.5]))
+         + sign[:, None, None] * shape(x)[None, :, None] * np.array([1.0, 0.5]))
     return x, y
 
 
-def test_modes_are_kept_over_one_mode_only_where_they_score_better():
-    from test_linear_conditioning import bimodal_model
-    several, x = bimodal_model()
-    _, y_tr = _bimodal_demos(40, 1)
+@pytest.mark.parametrize("apart_at_start", [False, True])
+def test_modes_are_kept_over_one_mode_only_where_they_score_better_and_no_mean_is_worse(apart_at_start):
+    """Two modes ±shape(x) against one Gaussian of the same demos (its PPCA): where the modes meet at the
+    start (sin πx), the mean of one mode from the start
+    point alone misses the other mode's demos, worse than the Gaussian's mean between them, and the modes
+    are not kept; where they are apart there (0.5 + sin πx), the start tells them apart and they are kept."""
+    from test_linear_conditioning import decoder_modes_model
+    shape = (lambda x: 0.5 + np.sin(np.pi * x)) if apart_at_start else (lambda x: np.sin(np.pi * x))
+    several, x = decoder_modes_model(shares=(0.5, 1.0), shape=shape)
+    _, y_tr = _bimodal_demos(40, 1, shape)
     mean, a, _ = pca_basis(phase_basis(x, 8, 1.0, False), y_tr, 16, 0.05)
     net = DeepProMPNet(ModelConfig(n_joints=2, latent_dim=17, hidden=8, decoder_basis=8, latent_linear=16,
                                    residual_scale=0.0))
@@ -173,13 +178,16 @@ def test_modes_are_kept_over_one_mode_only_where_they_score_better():
         net.basis.bias.copy_(torch.as_tensor(mean))
         net.basis.weight.copy_(torch.as_tensor(a))
     one = (net, several.norm)
-    _, y_val = _bimodal_demos(12, 2)
+    _, y_val = _bimodal_demos(12, 2, shape)
     val = DemoDataset(tuple(demo_from_arrays(f"v{i}", x * 4.0, y_val[i], ["a", "b"]) for i in range(len(y_val))))
     cfg = TrainConfig(n_points=50)
     keep, rec = compare_modes((several.net, several.norm), one, ["a", "b"], val, cfg)
-    # the start point (where the modes meet) leaves one Gaussian between the modes: the two-mode model's
-    # samples score better, and 5 via-points put both means on the demo's mode
-    assert keep and rec["relative_difference"] + rec["standard_error"] < 0, rec
+    start_modes, start_one = rec["mse_modes"][0], rec["mse_one_mode"][0]
+    if apart_at_start:  # the modes' samples score better by more than one standard error, no mean worse
+        assert rec["relative_difference"] + rec["standard_error"] < 0, rec
+        assert keep and rec["means_not_worse"] and start_modes < start_one, rec
+    else:
+        assert not keep and not rec["means_not_worse"] and start_modes > 1.5 * start_one, rec
     keep, rec = compare_modes(one, (several.net, several.norm), ["a", "b"], val, cfg)
     assert not keep and rec["relative_difference"] > 0, rec
 

@@ -291,7 +291,9 @@ def selection_line(selection: dict) -> str:
     else:
         why = fallback.get("reason") or (f"not better than one mode: energy score's relative difference "
                                          f"{fallback['relative_difference']:+.3f} ± {fallback['standard_error']:.3f}, "
-                                         f"the via-point means' {fallback['via_mean_relative_difference']:+.3f}")
+                                         f"the via-point means' {fallback['via_mean_relative_difference']:+.3f}"
+                                         + ("" if fallback.get("means_not_worse", True) else
+                                            ", a conditioning's executed mean worse"))
         modes = f"linear_modes {lin['linear_modes']} ({why}): linear_modes 1"
     return (f"selected on the training demos: decoder_basis {lin['decoder_basis']}, latent_linear "
             f"{lin['latent_linear']} (latent_dim {lin['latent_dim']}), basis_cov_reg {lin['basis_cov_reg']:g} "

@@ -164,18 +164,27 @@ def judge_residual(net: DeepProMPNet, norm: Normalization, joint_names, val_ds: 
     return without_residual(net), record
 
 
-def _prefer_first(es: np.ndarray, mse: np.ndarray) -> tuple[bool, float, float, float, float, bool]:
+def _relative_mse(mse: np.ndarray, c: int) -> tuple[float, float]:
+    """Conditioning ``c``'s per-demo MSE differences of the first model from the second (:func:`_pair_scores`)
+    relative to the second's mean: (mean, standard error)."""
+    rel = (mse[0, c] - mse[1, c]) / max(float(mse[1, c].mean()), 1e-300)
+    return float(rel.mean()), float(rel.std(ddof=1) / np.sqrt(rel.size)) if rel.size >= 2 else 0.0
+
+
+def _prefer_first(es: np.ndarray, mse: np.ndarray, every_mean: bool = False
+                  ) -> tuple[bool, float, float, float, float, bool]:
     """The rule of :func:`judge_residual` between two models from their scores (:func:`_pair_scores`:
     index 0 the richer model, 1 the simpler): each conditioning's energy scores divided by the simpler
-    model's mean, :func:`keep_residual` on them, and the executed mean at the random via-point sets not
-    worse by more than one standard error (per-demo MSE differences relative to the simpler model's
-    mean). Returns (prefer the first, mean relative difference, its standard error, the via-point means'
-    relative difference, its standard error, whether the via-point means pass)."""
+    model's mean, :func:`keep_residual` on them, and the executed mean at the random via-point sets (with
+    ``every_mean``: at every conditioning) not worse by more than one standard error (per-demo MSE
+    differences relative to the simpler model's mean). Returns (prefer the first, mean relative difference,
+    its standard error, the via-point means' relative difference, its standard error, whether the means
+    pass)."""
     scale = np.maximum(es[1].mean(1, keepdims=True), 1e-300)
     better, diff, se = keep_residual(es[0] / scale, es[1] / scale)
-    via = (mse[0, 1] - mse[1, 1]) / max(float(mse[1, 1].mean()), 1e-300)
-    via_diff, via_se = float(via.mean()), float(via.std(ddof=1) / np.sqrt(via.size)) if via.size >= 2 else 0.0
-    mean_ok = via_diff - via_se <= 0.0
+    via_diff, via_se = _relative_mse(mse, 1)
+    checked = range(mse.shape[1]) if every_mean else (1,)
+    mean_ok = all(d - e <= 0.0 for d, e in (_relative_mse(mse, c) for c in checked))
     return better and mean_ok, diff, se, via_diff, via_se, mean_ok
 
 
@@ -244,11 +253,13 @@ def _pair_scores(on: DeepProMP, off: DeepProMP | None, demos: DemoDataset, cfg: 
 def compare_modes(several: tuple[DeepProMPNet, Normalization], one: tuple[DeepProMPNet, Normalization], joint_names,
                   val_ds: DemoDataset, cfg: TrainConfig, several_context: dict | None = None,
                   one_context: dict | None = None) -> tuple[bool, dict]:
-    """After a training of K > 1 modes kept its residual: keep it over the training of one mode
-    (``linear_modes`` 1, its residual judged) only when the rule of :func:`judge_residual` prefers it on
-    the validation demos — a lower energy score by more than one standard error, and an executed mean
-    at the random via-point sets not worse by more than one — so that modes are kept where they make
-    the conditioned distribution better, never at the cost of the via-points. ``several_context``,
+    """After a training of K > 1 modes (which the decoder holds): keep it over the training of one mode
+    (``linear_modes`` 1, its residual judged) only when the validation demos' conditioned samples have a
+    lower energy score by more than one standard error (the rule of :func:`judge_residual`) and the
+    executed mean is worse by more than one standard error at no conditioning (the start, the random
+    via-point sets, the start with the contexts): the mean of several modes commits to one of them where
+    the inputs cannot tell them apart, which a single Gaussian's mean between them beats in MSE, so modes
+    are kept only where the demos' inputs tell them apart. ``several_context``,
     ``one_context``: each model's record of :func:`choose_context_paths` (its path of the low-dimensional
     contexts), None for the encoders. Returns (keep the modes, the record)."""
     extras = bool(val_ds.context_dims) or val_ds.image_shape is not None
@@ -256,10 +267,11 @@ def compare_modes(several: tuple[DeepProMPNet, Normalization], one: tuple[DeepPr
     def primitive(fitted, context):
         return DeepProMP(*fitted, joint_names, metadata={"selection": {"context": context}} if context else None)
     es, mse = _pair_scores(primitive(several, several_context), primitive(one, one_context), val_ds, cfg, extras)
-    keep, diff, se, via_diff, via_se, _ = _prefer_first(es, mse)
+    keep, diff, se, via_diff, via_se, means_ok = _prefer_first(es, mse, every_mean=True)
     return keep, {"kept_modes": bool(keep), "judged_on": "validation demos", "relative_difference": diff,
                   "standard_error": se, "via_mean_relative_difference": via_diff, "via_mean_standard_error": via_se,
-                  "mse_modes": mse[0].mean(1).tolist(), "mse_one_mode": mse[1].mean(1).tolist()}
+                  "means_not_worse": bool(means_ok), "mse_modes": mse[0].mean(1).tolist(),
+                  "mse_one_mode": mse[1].mean(1).tolist()}
 
 
 def choose_mode_noise(net: DeepProMPNet, norm: Normalization, joint_names, val_ds: DemoDataset,
