@@ -48,7 +48,6 @@ from typing import Any
 import rclpy
 from deepprompt_msgs.msg import ResultCode
 from deepprompt_msgs.srv import StartRecording, StopRecording
-from rclpy.executors import ExternalShutdownException
 from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -57,6 +56,7 @@ from rclpy.subscription import Subscription
 from sensor_msgs.msg import JointState
 
 from deepprompt_ros.data.io import save_demo
+from deepprompt_ros.ros.shutdown import spin_until_shutdown
 from deepprompt_ros.recording.bag_writer import BagWriter, qos_profile_yaml
 from deepprompt_ros.recording.checks import (
     RecordingError,
@@ -440,11 +440,11 @@ def main(args=None) -> int:
     code = 0
     try:
         node = DemoRecorder()
-        rclpy.spin(node)
+        spin_until_shutdown(lambda: rclpy.spin(node))
     except ConfigError as exc:
         rclpy.logging.get_logger("demo_recorder").fatal(f"invalid configuration: {exc}")
         code = 2
-    except (KeyboardInterrupt, ExternalShutdownException):
+    except KeyboardInterrupt:
         pass
     finally:
         if node is not None:

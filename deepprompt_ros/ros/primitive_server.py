@@ -58,7 +58,7 @@ from deepprompt_msgs.action import Execute
 from deepprompt_msgs.srv import Blend, Condition, ListPrimitives, Sample, SetPhaseRate
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -66,6 +66,7 @@ from deepprompt_ros import paths
 from deepprompt_ros.common.params import ConfigError
 from deepprompt_ros.common.results import Code, RequestError
 from deepprompt_ros.ros.parameters import declare_config
+from deepprompt_ros.ros.shutdown import spin_until_shutdown
 from deepprompt_ros.server.config import ServerConfig, robot_limits
 from deepprompt_ros.server.primitives_file import load_primitives, read_primitives_file
 from deepprompt_ros.server.requests import BlendRequest, ConditionRequest, ExecuteRequest, SampleRequest
@@ -366,11 +367,11 @@ def main(args=None) -> int:
         node.get_logger().info(f"{n} start-up objects frozen (gc.freeze)")
         executor = MultiThreadedExecutor(num_threads=6)
         executor.add_node(node)
-        executor.spin()
+        spin_until_shutdown(executor.spin)
     except ConfigError as exc:
         rclpy.logging.get_logger("primitive_server").fatal(f"refusing to start: {exc}")
         code = 2
-    except (KeyboardInterrupt, ExternalShutdownException):
+    except KeyboardInterrupt:
         pass
     finally:
         if node is not None:

@@ -75,7 +75,6 @@ import rclpy
 from deepprompt_msgs.msg import ResultCode
 from deepprompt_msgs.srv import SpawnObject
 from geometry_msgs.msg import PointStamped, PoseStamped
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
@@ -90,6 +89,7 @@ from deepprompt_ros.ros.parameters import declare_config
 from deepprompt_ros.sim.bridge_config import ObjectConfig, SimBridgeConfig
 from deepprompt_ros.sim.camera import CameraPose
 from deepprompt_ros.sim.simulation import Simulation
+from deepprompt_ros.ros.shutdown import spin_until_shutdown
 
 __all__ = ["SimBridge", "main"]
 
@@ -392,11 +392,11 @@ def main(args=None) -> int:
         # over them holds the interpreter lock long enough to stall the simulation thread
         realtime.freeze_startup_objects()
         node.start()
-        rclpy.spin(node)
+        spin_until_shutdown(lambda: rclpy.spin(node))
     except ConfigError as exc:
         rclpy.logging.get_logger("sim_bridge").fatal(f"invalid configuration: {exc}")
         code = 2
-    except (KeyboardInterrupt, ExternalShutdownException):
+    except KeyboardInterrupt:
         pass
     finally:
         if node is not None:

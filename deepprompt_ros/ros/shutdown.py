@@ -1,0 +1,29 @@
+"""Spinning a node process until it is asked to stop (SIGINT / SIGTERM, ``rclpy.shutdown``).
+
+rclpy's signal handler shuts the context down asynchronously. An executor that is building its wait set
+at that moment raises ``RCLError`` ("failed to initialize wait set: the given context is not valid")
+instead of ``ExternalShutdownException`` (ros2/rclpy#398, ros2/ros2cli#854): a clean stop that would
+otherwise end the process with a traceback and exit code 1.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import rclpy
+from rclpy.executors import ExternalShutdownException
+
+__all__ = ["spin_until_shutdown"]
+
+
+def spin_until_shutdown(spin: Callable[[], None], context=None) -> None:
+    """Run ``spin`` (``lambda: rclpy.spin(node)``, ``executor.spin``); return normally when the process
+    is asked to stop: ``KeyboardInterrupt``, ``ExternalShutdownException``, or a ``RuntimeError`` (rclpy's
+    ``RCLError``) raised once ``context`` (the default one when None) is shut down. Any other error, and a
+    ``RuntimeError`` while the context is still running, is raised."""
+    try:
+        spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except RuntimeError:
+        if rclpy.ok(context=context):
+            raise
