@@ -287,22 +287,19 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
     k_l = net.k_lin
     m, s = context_mean[:k_l], np.sqrt(context_var[:k_l])
     # the prior of z_nl, q_c; with several modes its first coordinate, which chooses the mode, N(0, 1) whatever
-    # the encodings say (the modes are told apart by the exact likelihoods alone), and the proposal of the
-    # candidates that prior; else q_all
+    # the encodings say (the modes are told apart by the exact likelihoods alone; mode_candidates)
     prior_mean, prior_var = context_mean[k_l:], context_var[k_l:]
-    prop_mean, prop_var = all_mean[k_l:], all_var[k_l:]
     modes = net.has_modes
     if modes:
         prior_mean, prior_var = prior_mean.copy(), prior_var.copy()
         prior_mean[0], prior_var[0] = 0.0, 1.0
-        prop_mean, prop_var = prior_mean, prior_var
     if candidates_nl is None:
         if not net.decoder_reads_z_nl:
             candidates_nl = all_mean[None, k_l:]
         elif modes:
             candidates_nl = mode_candidates(net, prior_mean, prior_var, n_candidates, seed)
         else:
-            candidates_nl = _candidates(prop_mean, prop_var, n_candidates, seed)
+            candidates_nl = _candidates(all_mean[k_l:], all_var[k_l:], n_candidates, seed)
     if x.shape[0] == 0:  # no via-point: the context rows alone
         h, g = np.zeros((0, k_l)), np.zeros((0, k_l))
         r, d = np.zeros((candidates_nl.shape[0], 0)), np.zeros((candidates_nl.shape[0], 0))
@@ -360,13 +357,12 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
     else:
         # the posterior ∝ p(via-points | z_nl) q_c(z_nl): the executed mean is the candidate of the highest
         # posterior density (the first within rounding of it, TIE_TOLERANCE: the same choice on every
-        # machine); the weights are its self-normalized importance weights under the proposal (q_all(z_nl),
-        # q_c(z_nl) with modes), so the via-points count once, through their exact likelihood, not again
-        # through their encodings
+        # machine); the weights are its self-normalized importance weights under the proposal q_all(z_nl),
+        # so the via-points count once, through their exact likelihood, not again through their encodings
         log_post = loglik - 0.5 * ((candidates_nl - prior_mean) ** 2 / prior_var).sum(1)
         top = log_post.max()
         best = int(np.flatnonzero(log_post >= top - TIE_TOLERANCE * max(1.0, abs(top)))[0])
-        log_w = log_post + 0.5 * ((candidates_nl - prop_mean) ** 2 / prop_var).sum(1)
+        log_w = log_post + 0.5 * ((candidates_nl - all_mean[k_l:]) ** 2 / all_var[k_l:]).sum(1)
         weights = np.exp(log_w - log_w.max())
         weights /= weights.sum()
     if not smooth:
