@@ -369,6 +369,46 @@ def test_decoder_modes_are_weighed_by_the_exact_likelihood_whatever_the_encoders
         assert np.abs(prim.mean_trajectory(lat, np.array([0.5])) - yv).max() <= 1e-6
 
 
+def test_the_executed_mean_weighs_the_modes_by_their_posterior_probabilities():
+    """Via-points the modes share (where they meet) leave each mode its prior share: the executed mean is the
+    posterior mean of the trajectory, Σ_k P(k | via-points) × mode k's conditioned mean, which meets the
+    via-points as each mode's mean does; one via-point on a mode makes the weights one-hot."""
+    prim, x = decoder_modes_model(shares=(0.3, 1.0))
+    xv = np.array([0.0, 1.0])
+    yv = np.array([[0.0, 0.0], [0.3, 0.15]])
+    for planner in (False, True):
+        lat = prim.condition_planner(xv, yv).latent if planner else prim.condition(xv, yv)
+        block = lat.linear
+        np.testing.assert_allclose(lat.mode_weights, block.weights[np.argsort(prim.mode_of(block.candidates))],
+                                   atol=1e-15)
+        # each mode's share times the marginal likelihood N(y; Φ(b + m_k) + mean, H Hᵀ + ν²σ²I) of the
+        # via-points under the prior N(0, I) of z_lin, written out densely
+        _, h = prim._np.linear_design(xv)
+        h = h.reshape(-1, 16)
+        cov = h @ h.T + np.diag(np.tile((block.noise * prim._np.y_std) ** 2, 2))
+        loglik = []
+        for z_nl in prim._np.mode_medians:
+            z = np.zeros(17)
+            z[16] = z_nl
+            r = (yv - prim.decode(z, xv)).reshape(-1)
+            loglik.append(-0.5 * r @ np.linalg.solve(cov, r))
+        expected = np.array([0.3, 0.7]) * np.exp(np.array(loglik) - max(loglik))
+        np.testing.assert_allclose(lat.mode_weights, expected / expected.sum(), rtol=1e-6)
+        assert 0.25 < lat.mode_weights[0] < 0.4  # (near the prior shares: the modes barely differ there)
+        per_mode = prim.decode(block.candidates, x)  # (2, T, d): each mode's conditioned mean
+        np.testing.assert_allclose(prim.mean_trajectory(lat, x), np.einsum("c,ctd->td", block.weights, per_mode),
+                                   atol=1e-9)
+        # between the modes at x = 0.5 (they are 2 apart on joint a there), at 0.3·(−) + 0.7·(+)
+        mid = prim.mean_trajectory(lat, np.array([0.5]))[0, 0]
+        lo, hi = sorted(prim.decode(block.candidates, np.array([0.5]))[:, 0, 0])
+        assert mid == pytest.approx(lo + lat.mode_weights[1] * (hi - lo), abs=1e-9) and hi - lo > 1.9
+        assert np.abs(prim.mean_trajectory(lat, xv) - yv).max() <= 1e-6
+        assert block.via_error == pytest.approx(np.abs(prim.mean_trajectory(lat, xv) - yv).max(), abs=1e-12)
+    lat = prim.condition(np.array([0.5]), np.array([[0.15 + 1.0, 0.075 + 0.5]]))
+    np.testing.assert_array_equal(lat.mode_weights, [0.0, 1.0])
+    np.testing.assert_allclose(prim.mean_trajectory(lat, x), prim.decode(lat.mean, x), atol=1e-12)
+
+
 def test_a_blend_between_two_modes_moves_from_one_offset_to_the_other_without_a_jump():
     from deepprompt_ros.server.handles import BlendedLatent, ConditionedLatent, Schedule
     prim, x = decoder_modes_model(shares=(0.5, 1.0))

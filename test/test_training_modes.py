@@ -163,10 +163,14 @@ def _bimodal_demos(n, seed, shape=lambda x: np.sin(np.pi * x)):
 
 @pytest.mark.parametrize("apart_at_start", [False, True])
 def test_modes_are_kept_over_one_mode_only_where_they_score_better_and_no_mean_is_worse(apart_at_start):
-    """Two modes ±shape(x) against one Gaussian of the same demos (its PPCA): where the modes meet at the
-    start (sin πx), the mean of one mode from the start
-    point alone misses the other mode's demos, worse than the Gaussian's mean between them, and the modes
-    are not kept; where they are apart there (0.5 + sin πx), the start tells them apart and they are kept."""
+    """Two modes ±shape(x) against one Gaussian of the same demos (its PPCA). Where the modes meet at the
+    start (sin πx) the start point alone cannot tell them apart: the executed mean weighs the modes by their
+    posterior probabilities (about one half each), as good as the Gaussian's mean between them, where one
+    mode's mean would miss every demo of the other (1.5x the Gaussian's error before the weighting). Where
+    they are apart there (0.5 + sin πx) the start tells them apart and the mean is better. The modes are
+    kept on 40 validation demos, whose samples score better by more than one standard error; on 12 demos
+    of the modes that meet at the start the samples are better by less than one standard error (measured
+    0.09 ± 0.10) and one Gaussian is kept."""
     from test_linear_conditioning import decoder_modes_model
     shape = (lambda x: 0.5 + np.sin(np.pi * x)) if apart_at_start else (lambda x: np.sin(np.pi * x))
     several, x = decoder_modes_model(shares=(0.5, 1.0), shape=shape)
@@ -178,16 +182,21 @@ def test_modes_are_kept_over_one_mode_only_where_they_score_better_and_no_mean_i
         net.basis.bias.copy_(torch.as_tensor(mean))
         net.basis.weight.copy_(torch.as_tensor(a))
     one = (net, several.norm)
-    _, y_val = _bimodal_demos(12, 2, shape)
-    val = DemoDataset(tuple(demo_from_arrays(f"v{i}", x * 4.0, y_val[i], ["a", "b"]) for i in range(len(y_val))))
     cfg = TrainConfig(n_points=50)
-    keep, rec = compare_modes((several.net, several.norm), one, ["a", "b"], val, cfg)
-    start_modes, start_one = rec["mse_modes"][0], rec["mse_one_mode"][0]
-    if apart_at_start:  # the modes' samples score better by more than one standard error, no mean worse
-        assert rec["relative_difference"] + rec["standard_error"] < 0, rec
-        assert keep and rec["means_not_worse"] and start_modes < start_one, rec
-    else:
-        assert not keep and not rec["means_not_worse"] and start_modes > 1.5 * start_one, rec
+    for n_val in (12, 40):
+        _, y_val = _bimodal_demos(n_val, 2, shape)
+        val = DemoDataset(tuple(demo_from_arrays(f"v{i}", x * 4.0, y_val[i], ["a", "b"])
+                                for i in range(len(y_val))))
+        keep, rec = compare_modes((several.net, several.norm), one, ["a", "b"], val, cfg)
+        start_modes, start_one = rec["mse_modes"][0], rec["mse_one_mode"][0]
+        assert rec["means_not_worse"], rec
+        if apart_at_start:
+            assert start_modes < 0.5 * start_one, rec
+        else:  # the weighted mean: within 5 % of the Gaussian's (measured 1.5 %)
+            assert abs(start_modes / start_one - 1.0) < 0.05, rec
+        better = rec["relative_difference"] + rec["standard_error"] < 0
+        assert keep == better, rec
+        assert keep == (apart_at_start or n_val == 40), rec
     keep, rec = compare_modes(one, (several.net, several.norm), ["a", "b"], val, cfg)
     assert not keep and rec["relative_difference"] > 0, rec
 

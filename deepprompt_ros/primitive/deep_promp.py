@@ -399,7 +399,7 @@ class DeepProMP:
         x, y, mask = x[active], y[active], self.check_mask(via_mask, x.shape[0])[active]
 
         def error(lat):
-            return float(np.abs((self.decode(lat.mean, x) - y)[mask]).max()) if mask.any() else 0.0
+            return float(np.abs((self.decode_mean(lat, x) - y)[mask]).max()) if mask.any() else 0.0
 
         if latent.linear is None:
             return PlannerConditioning(latent, error(latent), 0, "a plain latent: the aggregation as it is")
@@ -468,7 +468,7 @@ class DeepProMP:
                     full = mask.all(1)
                     base = self._condition(x[full], y[full], w_enc[full], None, contexts, context_weights, images,
                                            image_weight, noise, n_candidates, smooth)
-                    y_enc = np.where(mask, y, self.decode(base.mean, x))
+                    y_enc = np.where(mask, y, self.decode_mean(base, x))
                     w_enc = w_enc * mask.sum(1) / self.n_joints
                 mu, var = self.encode_via_points(x, y_enc)
                 mus.append(mu), vars_.append(var), ws.append(w_enc)
@@ -544,10 +544,19 @@ class DeepProMP:
         return self._np.decode_per_phase(z_x, x, mode_weights)
 
     def mode_weights(self, latent: LatentGaussian) -> np.ndarray | None:
-        """The one-hot weights (K,) of the decoder's mode that ``latent``'s mean chooses, None for a decoder
-        of one mode: what a blend interpolates (:meth:`blend`)."""
+        """The weights (K,) of the decoder's modes in ``latent``'s executed mean: its ``mode_weights`` (the
+        modes' posterior probabilities), else one-hot on the mode its mean chooses; None for a decoder of one
+        mode. What a blend interpolates (:meth:`blend`)."""
+        if latent.mode_weights is not None:
+            return np.asarray(latent.mode_weights, dtype=np.float64)
         k = self.mode_of(latent.mean)
         return None if k is None else np.eye(self.cfg.decoder_modes)[int(k)]
+
+    def decode_mean(self, latent: LatentGaussian, x: np.ndarray, eps: np.ndarray | None = None) -> np.ndarray:
+        """The trajectory of ``latent``'s mean (+ ``eps`` times its std, eps (k,)) at checked phases x (T,),
+        with the modes' offsets weighted by its ``mode_weights`` when it has them, (T, d) joint units."""
+        z = latent.mean if eps is None else latent.mean + eps * latent.std
+        return self._np.decode_weighted(z, x, latent.mode_weights)
 
     def decoder_jacobian(self, z: np.ndarray, x: np.ndarray, smoothing: float | None = None):
         """μ_y(z, x_i) and ∂μ_y/∂z at each phase, joint units (see
@@ -567,8 +576,9 @@ class DeepProMP:
         return self._np.decoder_jacobian(z, x, smoothing)
 
     def mean_trajectory(self, latent: LatentGaussian, x) -> np.ndarray:
-        """The trajectory a robot executes for ``latent``: μ_y(μ_z, x), shape (T, d)."""
-        return self.decode(latent.mean, self.check_phases(x))
+        """The trajectory a robot executes for ``latent``: μ_y(μ_z, x), shape (T, d); with several modes of
+        the decoder weighted by the latent's ``mode_weights`` (the posterior mean of the trajectory)."""
+        return self.decode_mean(latent, self.check_phases(x))
 
     def sample(self, latent: LatentGaussian, x, n: int, rng: np.random.Generator | int | None = None) -> np.ndarray:
         """n trajectories, each with ONE z ~ q(z) held constant over the trajectory (paper Sec. III-C).

@@ -169,27 +169,36 @@ class LatentGaussian:
     context_mean, context_var : array, shape (k,), or None
         q_c(z), the aggregation of the contexts and images alone (without the via-points): the
         prior of MAP refinement, whose likelihood holds the via-points. None: not recorded.
+    mode_weights : array, shape (K,), or None
+        A decoder of several modes (``decoder_modes`` K): the weight of each mode's offset in the
+        executed mean, the posterior probabilities of the modes, with ``mean``'s z_lin the same
+        weighting of the modes' z_lin means — the posterior mean of the trajectory
+        (:meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.mean_trajectory`). None: the mode
+        ``mean``'s z_nl chooses.
     """
 
-    __slots__ = ("mean", "_var", "linear", "context_mean", "context_var")
+    __slots__ = ("mean", "_var", "linear", "context_mean", "context_var", "mode_weights")
 
     def __init__(self, mean: np.ndarray, var: np.ndarray | None = None, linear: LinearBlock | None = None,
-                 context_mean: np.ndarray | None = None, context_var: np.ndarray | None = None):
+                 context_mean: np.ndarray | None = None, context_var: np.ndarray | None = None,
+                 mode_weights: np.ndarray | None = None):
         if var is None and linear is None:
             raise ValueError("a latent distribution needs its variance var, or a linear block to compute it from")
         for name, value in (("mean", mean), ("_var", var), ("linear", linear), ("context_mean", context_mean),
-                            ("context_var", context_var)):
+                            ("context_var", context_var), ("mode_weights", mode_weights)):
             object.__setattr__(self, name, value)
 
     def __setattr__(self, name, value):
         raise AttributeError(f"LatentGaussian is immutable: cannot set '{name}'")
 
     def __reduce__(self):
-        return LatentGaussian, (self.mean, self._var, self.linear, self.context_mean, self.context_var)
+        return LatentGaussian, (self.mean, self._var, self.linear, self.context_mean, self.context_var,
+                                self.mode_weights)
 
     def __repr__(self) -> str:
         return (f"LatentGaussian(mean={self.mean!r}, var={self.var!r}, linear={self.linear!r}, "
-                f"context_mean={self.context_mean!r}, context_var={self.context_var!r})")
+                f"context_mean={self.context_mean!r}, context_var={self.context_var!r}, "
+                f"mode_weights={self.mode_weights!r})")
 
     @property
     def var(self) -> np.ndarray:
@@ -201,7 +210,7 @@ class LatentGaussian:
 
     def with_context(self, context_mean: np.ndarray | None, context_var: np.ndarray | None) -> "LatentGaussian":
         """The same distribution recording another q_c(z) (``context_mean``, ``context_var``)."""
-        return LatentGaussian(self.mean, self._var, self.linear, context_mean, context_var)
+        return LatentGaussian(self.mean, self._var, self.linear, context_mean, context_var, self.mode_weights)
 
     def is_finite(self) -> bool:
         """Whether mean and variance hold no NaN or inf (a variance not yet computed: its factors)."""

@@ -14,7 +14,9 @@ z_nl is not linear: candidates (the mean of its aggregation q_all(z_nl) of all i
 quasi-random points of it) are weighted by the closed-form marginal likelihood of the via-points,
 N(r; H m, H Σ Hᵀ + R) (up to the factor every candidate shares), times q_c(z_nl) / q_all(z_nl):
 importance weights of the posterior under the prior q_c of the contexts and images, the proposal
-q_all. See :meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.condition`.
+q_all. With several modes of the decoder (``decoder_modes``) and no MLP residual the candidates are one
+per mode, weighted by the mode's share times the exact likelihood: the exact mixture posterior, whose
+mean trajectory is what the robot executes. See :meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.condition`.
 
 Numerics (float64): everything is whitened (rows divided by their noise, columns times the prior
 std), then factored by Cholesky — of I + G Gᵀ (M × M) when there are no more rows M than k_l, of the
@@ -282,7 +284,9 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
 
     Returns
     -------
-    LatentGaussian with ``linear`` set; ``mean`` = the candidate of the highest posterior density.
+    LatentGaussian with ``linear`` set; ``mean`` = the candidate of the highest posterior density — with
+    several modes and no MLP residual, the modes' z_lin means weighted by their posterior probabilities,
+    which ``mode_weights`` holds (the posterior mean of the trajectory).
     """
     k_l = net.k_lin
     m, s = context_mean[:k_l], np.sqrt(context_var[:k_l])
@@ -391,8 +395,22 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
         if not math.isfinite(z_lin.sum() + (0.0 if single else loglik.sum())):
             return _overflow(net.cfg.latent_dim, context_mean, context_var)
     cands = np.concatenate([z_lin, candidates_nl], 1)  # (C, k)
-    # the best candidate's mean at the observed joints of the via-points: offset + H z_lin (joint units)
-    via_error = float(np.abs(r[best] - h @ cands[best, :k_l]).max()) if h.shape[0] else 0.0
+    mean, mode_weights = cands[best].copy(), None
+    if modes and not net.mlp_active:
+        # the decoder reads z_nl through the mode alone: the executed mean is the posterior mean of the
+        # trajectory, Σ_k P(k | via-points, contexts) (Φ m_k + Φ(b + A z̄_k)), the modes' offsets and z_lin
+        # means weighted alike (one mode when the evidence tells them apart, between them when it does not:
+        # the least-squares prediction); the latent keeps the most probable mode's z_nl
+        mode_weights = np.bincount(net.mode_of(candidates_nl), weights=weights, minlength=net.cfg.decoder_modes)
+        mean[:k_l] = weights @ z_lin
+    # the executed mean at the observed joints of the via-points: offset + H z_lin (joint units), per candidate
+    # and weighted as the mean is
+    if not h.shape[0]:
+        via_error = 0.0
+    elif mode_weights is None:
+        via_error = float(np.abs(r[best] - h @ cands[best, :k_l]).max())
+    else:
+        via_error = float(np.abs(weights @ (r - z_lin @ h.T)).max())
     nl_var = all_var[k_l:]
     if modes:  # the prior's, the mode's coordinate narrow: a latent perturbed by its spread keeps its mode
         nl_var = prior_var.copy()
@@ -401,7 +419,8 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
                         design=g if form == "observation" else None, form=form, noise=float(noise),
                         via_error=via_error, nl_var=nl_var)
     # (the variance: from the block when it is read)
-    return LatentGaussian(cands[best].copy(), linear=block, context_mean=context_mean, context_var=context_var)
+    return LatentGaussian(mean, linear=block, context_mean=context_mean, context_var=context_var,
+                          mode_weights=mode_weights)
 
 
 def smallest_change(net: "NumpyNet", h: np.ndarray, residual: np.ndarray,
@@ -494,7 +513,7 @@ def refine_split(net: "NumpyNet", latent: LatentGaussian, x: np.ndarray, y: np.n
     k_l = net.cfg.latent_linear
 
     def error(lat):
-        return float(np.abs((y - net.decode(lat.mean, x))[mask]).max())
+        return float(np.abs((y - net.decode_weighted(lat.mean, x, lat.mode_weights))[mask]).max())
 
     best, best_err = latent, error(latent)
     history = [best_err]
@@ -549,4 +568,4 @@ def moved_mean(moved: LatentGaussian, original: LatentGaussian) -> LatentGaussia
     block = dataclasses.replace(m, scale=o.scale, chol=o.chol, design=o.design, form=o.form, noise=o.noise,
                                 nl_var=o.nl_var)
     return LatentGaussian(moved.mean, original.var, linear=block, context_mean=moved.context_mean,
-                          context_var=moved.context_var)
+                          context_var=moved.context_var, mode_weights=moved.mode_weights)

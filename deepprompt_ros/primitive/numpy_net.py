@@ -165,8 +165,11 @@ class NumpyNet:
 
     def _mode_part(self, z_nl: np.ndarray, x) -> np.ndarray:
         """Φ(x) m_k of the mode each z_nl chooses, joint units: z_nl (k − k_l,) → (T, d), (n, k − k_l) → (n, T, d)."""
-        per_mode = self._per_grid(self._mode_cache, x, lambda x: np.einsum("tb,kbd->ktd", self._phi(x), self._modes))
-        return per_mode[self.mode_of(z_nl)]
+        return self._per_mode(x)[self.mode_of(z_nl)]
+
+    def _per_mode(self, x) -> np.ndarray:
+        """Φ(x) m_k of every mode, joint units, (K, T, d); cached per phase grid (read-only)."""
+        return self._per_grid(self._mode_cache, x, lambda x: np.einsum("tb,kbd->ktd", self._phi(x), self._modes))
 
     @property
     def context_names(self) -> list[str]:
@@ -211,6 +214,18 @@ class NumpyNet:
         out = self.decode_nonlinear(z[..., self.k_lin:], x)
         if self.cfg.decoder_basis:
             out += self._linear_part(z, x)
+        return out
+
+    def decode_weighted(self, z: np.ndarray, x, mode_weights: np.ndarray | None) -> np.ndarray:
+        """μ_y(z, x) with the modes' offsets weighted by ``mode_weights`` (K,) instead of the one z's
+        z_nl chooses (:attr:`LatentGaussian.mode_weights`), joint units: z (k,) → (T, d). None, or a
+        decoder of one mode: :meth:`decode`."""
+        out = self.decode(z, x)
+        if mode_weights is None or self._modes is None:
+            return out
+        per_mode = self._per_mode(x)
+        out -= per_mode[self.mode_of(np.asarray(z, dtype=np.float64)[self.k_lin:])]
+        out += np.einsum("k,ktd->td", np.asarray(mode_weights, dtype=np.float64), per_mode)
         return out
 
     def decode_nonlinear(self, z_nl: np.ndarray, x: np.ndarray) -> np.ndarray:

@@ -180,7 +180,7 @@ def _split_result(prim: "DeepProMP", split: SplitRefinement, x, y, mask, n_sampl
     """The :class:`RefinementResult` of a split latent refined in its linear block alone; the sample
     mean error is that of ``n_samples`` draws of the latent (candidates by weight, z_lin exact)."""
     mf = mask.astype(np.float64)
-    r = (y - prim.decode(split.latent.mean, x)) * mf
+    r = (y - prim.decode_mean(split.latent, x)) * mf
     y_bar = prim.sample(split.latent, x, n_samples, seed).mean(0)
     max_err = float(np.abs(r).max())
     return RefinementResult(latent=split.latent, max_error=max_err, errors=r,

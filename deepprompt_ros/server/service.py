@@ -104,8 +104,7 @@ class PrimitiveServerCore:
                 eps: np.ndarray | None) -> np.ndarray:
         """Trajectory of ``dist`` at phases x (T,): z(x) = μ(x) + ε σ(x) (ε None -> 0), (T, d)."""
         if isinstance(dist, ConditionedLatent):
-            z = dist.latent.mean if eps is None else dist.latent.mean + eps * dist.latent.std
-            return prim.model.decode(z, x)
+            return prim.model.decode_mean(dist.latent, x, eps)
         mean, var = dist.latent_at(x)
         z = mean if eps is None else mean + eps[None, :] * np.sqrt(var)
         return prim.model.decode_per_phase(z, x, self._mode_weights(prim, dist, x))

@@ -372,7 +372,7 @@ def choose_context_paths(net: DeepProMPNet, norm: Normalization, joint_names, cf
                 y = d.resampled(cfg.n_points)
                 lat = prim.condition_planner(x[:1], y[:1], contexts=dict(d.contexts),
                                              images=d.images if c == "image+low" else None).latent
-                out[j, i] = float(((prim.decode(lat.mean, x) - y) ** 2).mean())
+                out[j, i] = float(((prim.decode_mean(lat, x) - y) ** 2).mean())
         return out
 
     per_demo = {k: val_mse(rec) for k, rec in candidates.items()}
