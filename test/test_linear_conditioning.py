@@ -373,10 +373,13 @@ def test_the_executed_mean_weighs_the_modes_by_their_posterior_probabilities():
     """Via-points the modes share (where they meet) leave each mode its prior share: the executed mean is the
     posterior mean of the trajectory, Σ_k P(k | via-points) × mode k's conditioned mean, which meets the
     via-points as each mode's mean does; one via-point on a mode makes the weights one-hot."""
-    prim, x = decoder_modes_model(shares=(0.3, 1.0))
+    from deepprompt_ros.training.selection import with_via_noise
+    model, x = decoder_modes_model(shares=(0.3, 1.0))
     xv = np.array([0.0, 1.0])
     yv = np.array([[0.0, 0.0], [0.3, 0.15]])
-    for planner in (False, True):
+    for planner, mode_noise in ((False, 0.0), (True, 0.0), (False, 0.3), (True, 0.3)):
+        # mode_noise: the modes' weights at that noise whatever the request's (0: the model's via_noise)
+        prim = DeepProMP(with_via_noise(model.net, model.cfg.via_noise, mode_noise), model.norm, ["a", "b"])
         lat = prim.condition_planner(xv, yv).latent if planner else prim.condition(xv, yv)
         block = lat.linear
         np.testing.assert_allclose(lat.mode_weights, block.weights[np.argsort(prim.mode_of(block.candidates))],
@@ -385,7 +388,9 @@ def test_the_executed_mean_weighs_the_modes_by_their_posterior_probabilities():
         # via-points under the prior N(0, I) of z_lin, written out densely
         _, h = prim._np.linear_design(xv)
         h = h.reshape(-1, 16)
-        cov = h @ h.T + np.diag(np.tile((block.noise * prim._np.y_std) ** 2, 2))
+        assert block.weight_noise == (prim.mode_noise if planner or mode_noise else None)
+        assert prim.mode_noise == (mode_noise or model.cfg.via_noise)
+        cov = h @ h.T + np.diag(np.tile((prim.mode_noise * prim._np.y_std) ** 2, 2))
         loglik = []
         for z_nl in prim._np.mode_medians:
             z = np.zeros(17)
@@ -395,6 +400,7 @@ def test_the_executed_mean_weighs_the_modes_by_their_posterior_probabilities():
         expected = np.array([0.3, 0.7]) * np.exp(np.array(loglik) - max(loglik))
         np.testing.assert_allclose(lat.mode_weights, expected / expected.sum(), rtol=1e-6)
         assert 0.25 < lat.mode_weights[0] < 0.4  # (near the prior shares: the modes barely differ there)
+        assert abs(lat.mode_weights[0] - 0.3) < (0.001 if mode_noise else 0.1)
         per_mode = prim.decode(block.candidates, x)  # (2, T, d): each mode's conditioned mean
         np.testing.assert_allclose(prim.mean_trajectory(lat, x), np.einsum("c,ctd->td", block.weights, per_mode),
                                    atol=1e-9)
@@ -404,9 +410,9 @@ def test_the_executed_mean_weighs_the_modes_by_their_posterior_probabilities():
         assert mid == pytest.approx(lo + lat.mode_weights[1] * (hi - lo), abs=1e-9) and hi - lo > 1.9
         assert np.abs(prim.mean_trajectory(lat, xv) - yv).max() <= 1e-6
         assert block.via_error == pytest.approx(np.abs(prim.mean_trajectory(lat, xv) - yv).max(), abs=1e-12)
-    lat = prim.condition(np.array([0.5]), np.array([[0.15 + 1.0, 0.075 + 0.5]]))
+    lat = model.condition(np.array([0.5]), np.array([[0.15 + 1.0, 0.075 + 0.5]]))
     np.testing.assert_array_equal(lat.mode_weights, [0.0, 1.0])
-    np.testing.assert_allclose(prim.mean_trajectory(lat, x), prim.decode(lat.mean, x), atol=1e-12)
+    np.testing.assert_allclose(model.mean_trajectory(lat, x), model.decode(lat.mean, x), atol=1e-12)
 
 
 def test_a_blend_between_two_modes_moves_from_one_offset_to_the_other_without_a_jump():

@@ -13,12 +13,14 @@ from deepprompt_ros.data.demonstration import Demonstration, demo_from_arrays
 from deepprompt_ros.data.synthetic import bimodal_sine
 from deepprompt_ros.model.checkpoint import load_checkpoint
 from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
+from deepprompt_ros.primitive.deep_promp import DeepProMP
 from deepprompt_ros.model.phase import phase_basis
 from deepprompt_ros.training.basis import (MODE_DIP, basis_weights, mode_dip, pca_basis, weight_modes)
 from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.distributed import Runtime
 from deepprompt_ros.training.loop import judge_with_fallback, train
-from deepprompt_ros.training.selection import compare_modes, select_linear_part
+from deepprompt_ros.training.selection import (MODE_NOISES, choose_mode_noise, compare_modes, select_linear_part,
+                                               with_via_noise)
 from deepprompt_ros.training.tensors import fit_normalization
 
 torch.set_num_threads(1)
@@ -161,6 +163,18 @@ def _bimodal_demos(n, seed, shape=lambda x: np.sin(np.pi * x)):
     return x, y
 
 
+def _one_gaussian(x, shape) -> DeepProMPNet:
+    """One Gaussian (the PPCA of 40 demos of :func:`_bimodal_demos`, no residual) of the modes ±shape(x)."""
+    _, y_tr = _bimodal_demos(40, 1, shape)
+    mean, a, _ = pca_basis(phase_basis(x, 8, 1.0, False), y_tr, 16, 0.05)
+    net = DeepProMPNet(ModelConfig(n_joints=2, latent_dim=17, hidden=8, decoder_basis=8, latent_linear=16,
+                                   residual_scale=0.0))
+    with torch.no_grad():
+        net.basis.bias.copy_(torch.as_tensor(mean))
+        net.basis.weight.copy_(torch.as_tensor(a))
+    return net.eval()
+
+
 @pytest.mark.parametrize("apart_at_start", [False, True])
 def test_modes_are_kept_over_one_mode_only_where_they_score_better_and_no_mean_is_worse(apart_at_start):
     """Two modes ±shape(x) against one Gaussian of the same demos (its PPCA). Where the modes meet at the
@@ -174,14 +188,7 @@ def test_modes_are_kept_over_one_mode_only_where_they_score_better_and_no_mean_i
     from test_linear_conditioning import decoder_modes_model
     shape = (lambda x: 0.5 + np.sin(np.pi * x)) if apart_at_start else (lambda x: np.sin(np.pi * x))
     several, x = decoder_modes_model(shares=(0.5, 1.0), shape=shape)
-    _, y_tr = _bimodal_demos(40, 1, shape)
-    mean, a, _ = pca_basis(phase_basis(x, 8, 1.0, False), y_tr, 16, 0.05)
-    net = DeepProMPNet(ModelConfig(n_joints=2, latent_dim=17, hidden=8, decoder_basis=8, latent_linear=16,
-                                   residual_scale=0.0))
-    with torch.no_grad():
-        net.basis.bias.copy_(torch.as_tensor(mean))
-        net.basis.weight.copy_(torch.as_tensor(a))
-    one = (net, several.norm)
+    one = (_one_gaussian(x, shape), several.norm)
     cfg = TrainConfig(n_points=50)
     for n_val in (12, 40):
         _, y_val = _bimodal_demos(n_val, 2, shape)
@@ -236,5 +243,49 @@ def test_judge_modes_false_keeps_the_modes_at_their_chosen_noise_without_the_tra
     assert net.cfg.via_noise == out_cfg.via_noise == record["noise"]["via_noise"] == float(min(mse, key=mse.get))
     from deepprompt_ros.training.basis import CV_VIA_NOISES
     assert sorted(mse) == sorted(f"{v:g}" for v in CV_VIA_NOISES) and max(mse.values()) > min(mse.values())
+    rel = record["noise"]["mode_noise_relative_mse_start_plus_random"]
+    assert net.cfg.mode_noise == out_cfg.mode_noise == record["noise"]["mode_noise"] == float(min(rel, key=rel.get))
+    assert sorted(rel, key=float) == [f"{v:g}" for v in MODE_NOISES if v >= net.cfg.via_noise]
     assert record["kept_modes"] and "judge_modes false" in record["reason"]
     assert "linear_modes 2 (judge_modes false" in lines[-1]
+
+
+def test_the_modes_weights_noise_is_chosen_where_the_modes_offsets_differ_by_their_estimation_error():
+    """Two modes that meet at the start in the demos (the start 0 in every demo) but whose offsets differ
+    there by 0.02 rad (an estimate's error): at the model's small via-point noise the start alone weighs the
+    modes by that difference (1 − 2e-6 on the nearer), and the mean from the start follows one mode; the noise of the
+    modes' weights chosen on the validation demos is larger, the weights near the shares and the mean
+    between the modes, with a lower MSE."""
+    from test_linear_conditioning import decoder_modes_model
+    several, x = decoder_modes_model(shares=(0.5, 1.0))
+    phi = phase_basis(x, 8, 1.0, False)
+    with torch.no_grad():  # mode 1's offset 0.02 rad higher at x = 0 (a bump of the first basis function)
+        bump = np.linalg.lstsq(phi, np.exp(-(x / 0.1) ** 2)[:, None] * np.array([0.02, 0.01]), rcond=None)[0]
+        several.net.mode_offsets[1] += torch.as_tensor((bump / np.asarray(several.norm.y_std)).reshape(-1),
+                                                       dtype=several.net.mode_offsets.dtype)
+    net = with_via_noise(several.net, 1e-3)
+    _, y_val = _bimodal_demos(12, 2)
+    val = DemoDataset(tuple(demo_from_arrays(f"v{i}", x * 4.0, y_val[i], ["a", "b"]) for i in range(len(y_val))))
+    chosen, record = choose_mode_noise(net, several.norm, ["a", "b"], val, TrainConfig(n_points=50))
+    assert chosen.cfg.mode_noise > chosen.cfg.via_noise, record
+
+    def start(n):
+        prim = DeepProMP(n, several.norm, ["a", "b"])
+        lats = [prim.condition(x[:1], y[:1]) for y in y_val]
+        return (np.array([lat.mode_weights for lat in lats]),
+                np.mean([((prim.mean_trajectory(lat, x) - y) ** 2).mean() for lat, y in zip(lats, y_val)]))
+    w_small, mse_small = start(with_via_noise(chosen, chosen.cfg.via_noise, 0.0))
+    w_chosen, mse_chosen = start(chosen)
+    assert w_small[:, 0].min() > 0.99 and np.abs(w_chosen - 0.5).max() < 0.01, (w_small, w_chosen)
+    assert mse_chosen < 0.6 * mse_small, (mse_chosen, mse_small)  # (measured 0.50)
+    # against one Gaussian: the means from the start weighed by the offsets' error are worse over the
+    # conditionings, and the modes are not kept; with the chosen noise they are not worse
+    one = (_one_gaussian(x, lambda x: np.sin(np.pi * x)), several.norm)
+    _, y_val = _bimodal_demos(40, 2)
+    val = DemoDataset(tuple(demo_from_arrays(f"v{i}", x * 4.0, y_val[i], ["a", "b"]) for i in range(len(y_val))))
+    cfg = TrainConfig(n_points=50)
+    keep, rec = compare_modes((with_via_noise(chosen, chosen.cfg.via_noise, 0.0), several.norm), one, ["a", "b"],
+                              val, cfg)
+    assert not keep and not rec["means_not_worse"], rec
+    keep, rec = compare_modes((chosen, several.norm), one, ["a", "b"], val, cfg)
+    assert rec["means_not_worse"], rec

@@ -154,6 +154,10 @@ class ModelConfig:
     via_noise: float = param(1e-4, "standard deviation of a via-point in the exact conditioning of the linear "
                                    "latent block (latent_linear > 0) when a request states none", gt=0.0,
                              unit="normalized")
+    mode_noise: float = param(0.0, "decoder_modes >= 2: the via-point standard deviation at which the modes' "
+                                   "posterior probabilities are computed, whatever noise a request states (the "
+                                   "modes' offsets are estimates: where the modes meet they differ by their "
+                                   "estimation error alone); 0 = via_noise", min=0.0, unit="normalized")
     decoder_modes: int = param(0, "K: 0 = one mode; K >= 2 = the linear part's weights are b + m_k + A z_lin with "
                                   "the mode k chosen by z_nl (mode_of_latent: the first z_nl coordinate's prior "
                                   "mass split by the modes' shares), a mixture of K linear Gaussians; needs "

@@ -211,6 +211,12 @@ class DeepProMP:
         """Per-element q(z | a_i): x (n,), y (n, d) rad → μ_i, σ²_i (n, k)."""
         return self._np.encode_via_points(x, y)
 
+    @property
+    def mode_noise(self) -> float:
+        """The via-point noise the posterior probabilities of the decoder's modes are computed at, whatever
+        noise a request states: ``ModelConfig.mode_noise``, else the model's ``via_noise``."""
+        return self.cfg.mode_noise or self.cfg.via_noise
+
     def mode_of(self, z) -> np.ndarray | None:
         """The mode of the decoder each latent z (k,) or (n, k) chooses (``ModelConfig.decoder_modes``:
         its z_nl's first coordinate), an int array of shape () or (n,); None for a decoder of one mode."""
@@ -480,7 +486,8 @@ class DeepProMP:
         has_via = via is not None and via[0].shape[0] and (observed is None or observed.any())
         if self._split and has_via and context_rows is None:
             return condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, *via[:3], observed, noise,
-                                   n_candidates, smooth_noise=smooth)
+                                   n_candidates, smooth_noise=smooth,
+                                   weight_noise=self.mode_noise)
         if self._split and context_rows is not None:
             # q(z | contexts, images) with the linear contexts' exact posterior of z_lin (its diagonal) is the
             # prior of MAP refinement and of the re-conditioning of refine_linear; without a via-point it is the
@@ -495,12 +502,14 @@ class DeepProMP:
                 ctx = lat = given_contexts(n_candidates)
             elif self._np.has_modes:
                 lat = condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, *via[:3], observed, noise,
-                                      n_candidates, context_rows=context_rows, smooth_noise=smooth)
+                                      n_candidates, context_rows=context_rows, smooth_noise=smooth,
+                                      weight_noise=self.mode_noise)
                 ctx = given_contexts(0, lat.mean[None, k_l:])
             else:
                 ctx = given_contexts(0)
                 lat = condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, *via[:3], observed, noise,
-                                      n_candidates, context_rows=context_rows, smooth_noise=smooth)
+                                      n_candidates, context_rows=context_rows, smooth_noise=smooth,
+                                      weight_noise=self.mode_noise)
             return lat.with_context(np.concatenate([ctx.mean[:k_l], q_c.mean[k_l:]]),
                                     np.concatenate([ctx.var[:k_l], q_c.var[k_l:]]))
         # no observed joint of a via-point of weight > 0: the aggregation is the distribution

@@ -77,6 +77,9 @@ class LinearBlock:
     nl_var : array, shape (k − k_l,)
         The variance of q(z_nl), the candidates' proposal (with ``decoder_modes``: the prior's, and
         ``MODE_GATE_VAR`` for the coordinate that chooses the mode).
+    weight_noise : float or None
+        The via-point noise the candidates' weights were computed at when it is not ``noise``
+        (``ModelConfig.mode_noise``); a re-conditioning at a smaller noise keeps it.
     """
 
     scale: np.ndarray
@@ -88,6 +91,7 @@ class LinearBlock:
     noise: float
     via_error: float
     nl_var: np.ndarray
+    weight_noise: float | None = None
 
     @property
     def k_lin(self) -> int:

@@ -244,7 +244,7 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
                     noise: float, n_candidates: int = 32, seed: int = 0,
                     candidates_nl: np.ndarray | None = None,
                     context_rows: tuple[np.ndarray, np.ndarray] | None = None,
-                    smooth_noise: float | None = None) -> LatentGaussian:
+                    smooth_noise: float | None = None, weight_noise: float | None = None) -> LatentGaussian:
     """q(z) of a split latent: z_lin exactly conditioned on the via-points for each z_nl candidate.
 
     Parameters
@@ -281,6 +281,10 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
         be met) or no via-point. When the best candidate's change would exceed
         :data:`~deepprompt_ros.primitive.latent.PLANNER_CHANGE_BOUND` times its largest miss, no
         candidate is moved: the means stay at ν_s and miss the via-points (``via_error`` says by how much).
+
+    weight_noise : float, optional
+        With several modes of the decoder: the via-point noise the modes' weights are computed at instead of
+        ``noise`` (``ModelConfig.mode_noise``; the context rows keep theirs).
 
     Returns
     -------
@@ -357,6 +361,11 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
     if single:
         weights, best = np.ones(1), 0
     elif modes:
+        weight_noise = None if weight_noise is None or weight_noise == noise or not n_via else float(weight_noise)
+        if weight_noise is not None:  # the via rows whitened at weight_noise: rows and residuals times ν / ν_w
+            rows = np.ones(g.shape[0])
+            rows[:n_via] = noise / weight_noise
+            loglik = whitened_posterior(g * rows[:, None], d * rows, with_mean=False)[3]
         weights, best = _mode_weights(net, candidates_nl, loglik, prior_mean, prior_var)
     else:
         # the posterior ∝ p(via-points | z_nl) q_c(z_nl): the executed mean is the candidate of the highest
@@ -417,7 +426,7 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
         nl_var[0] = MODE_GATE_VAR
     block = LinearBlock(scale=s, candidates=cands, weights=weights, chol=chol,
                         design=g if form == "observation" else None, form=form, noise=float(noise),
-                        via_error=via_error, nl_var=nl_var)
+                        via_error=via_error, nl_var=nl_var, weight_noise=weight_noise if modes else None)
     # (the variance: from the block when it is read)
     return LatentGaussian(mean, linear=block, context_mean=context_mean, context_var=context_var,
                           mode_weights=mode_weights)
@@ -537,7 +546,8 @@ def refine_split(net: "NumpyNet", latent: LatentGaussian, x: np.ndarray, y: np.n
         try:
             with np.errstate(all="ignore"):
                 lat = condition_split(net, latent.context_mean, latent.context_var, latent.mean, all_var, x, y,
-                                      None, mask, noise, candidates_nl=cands)
+                                      None, mask, noise, candidates_nl=cands,
+                                      weight_noise=latent.linear.weight_noise or latent.linear.noise)
             err = error(lat)
         except ValueError:  # the factorization failed at this noise
             reason = "the conditioning's factorization failed at a smaller noise"

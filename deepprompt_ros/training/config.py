@@ -49,6 +49,7 @@ class TrainConfig:
     residual_scale: float = param_from(ModelConfig, "residual_scale")
     latent_linear: int = param_from(ModelConfig, "latent_linear")
     via_noise: float = param_from(ModelConfig, "via_noise")
+    mode_noise: float = param_from(ModelConfig, "mode_noise")
     # -- model selection on the training demonstrations
     auto_select: bool = param(True, "choose the decoder from the training demos (never held-out ones): "
                                     "decoder_basis, latent_linear, basis_cov_reg, basis_cov_reg_units and "
@@ -57,7 +58,7 @@ class TrainConfig:
                                     "(with several modes the first z_nl dimension chooses the mode), the linear part "
                                     "initialized as their PPCA and kept fixed (basis_init pca, "
                                     "basis_lr_scale 0), then the MLP residual kept (residual_scale) or dropped (0) "
-                                    "on the validation demos (with linear_modes > 1 the modes' via-point noise is "
+                                    "on the validation demos (with linear_modes > 1 the modes' via-point noise and mode_noise are "
                                     "chosen on the validation demos, the training with linear_modes 1 runs too "
                                     "and the modes are kept only if better there), and "
                                     "the low-dim contexts conditioned through their joint linear Gaussian model "

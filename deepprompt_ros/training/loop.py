@@ -125,7 +125,7 @@ def judge_with_fallback(cfg: TrainConfig, fitted: tuple, selection: dict, log, f
     net, selection["residual"] = judge(net, norm, cfg)
     if cfg.linear_modes > 1 and not cfg.judge_modes:
         net, noise = run.broadcast(choose_mode_noise(net, norm, joint_names, val_ds, cfg) if run.is_main else None)
-        cfg = dataclasses.replace(cfg, via_noise=noise["via_noise"])
+        cfg = dataclasses.replace(cfg, via_noise=noise["via_noise"], mode_noise=noise["mode_noise"])
         selection["modes_fallback"] = {"linear_modes": cfg.linear_modes, "kept_modes": True, "noise": noise,
                                        "reason": "judge_modes false: kept without the training with one mode"}
     elif cfg.linear_modes > 1:
@@ -135,7 +135,8 @@ def judge_with_fallback(cfg: TrainConfig, fitted: tuple, selection: dict, log, f
         cfg = dataclasses.replace(cfg, linear_modes=1, latent_dim=cfg.latent_linear + nonlinear_dims(cfg, 1))
         noise_net, noise = run.broadcast(choose_mode_noise(modes_fitted[0], norm, joint_names, val_ds, modes_cfg)
                                          if run.is_main else None)
-        modes_cfg, modes_fitted = (dataclasses.replace(modes_cfg, via_noise=noise["via_noise"]),
+        modes_cfg, modes_fitted = (dataclasses.replace(modes_cfg, via_noise=noise["via_noise"],
+                                                       mode_noise=noise["mode_noise"]),
                                    (noise_net, *modes_fitted[1:]))
         net, norm, history, best = fit_again(cfg)
         net, selection["residual"] = judge(net, norm, cfg)
@@ -253,7 +254,7 @@ def new_network(ds, cfg: TrainConfig) -> DeepProMPNet:
                        phase_harmonics=cfg.phase_harmonics, decoder_basis=cfg.decoder_basis,
                        basis_width=cfg.basis_width, residual_scale=cfg.residual_scale,
                        variance_head=cfg.variance_head, latent_linear=cfg.latent_linear, via_noise=cfg.via_noise,
-                       decoder_modes=cfg.linear_modes if cfg.linear_modes > 1 else 0)
+                       mode_noise=cfg.mode_noise, decoder_modes=cfg.linear_modes if cfg.linear_modes > 1 else 0)
     return DeepProMPNet(mcfg)
 
 
