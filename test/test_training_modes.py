@@ -182,9 +182,9 @@ def test_modes_are_kept_over_one_mode_only_where_they_score_better_and_no_mean_i
     posterior probabilities (about one half each), as good as the Gaussian's mean between them, where one
     mode's mean would miss every demo of the other (1.5x the Gaussian's error before the weighting). Where
     they are apart there (0.5 + sin πx) the start tells them apart and the mean is better. The modes are
-    kept on 40 validation demos, whose samples score better by more than one standard error; on 12 demos
-    of the modes that meet at the start the samples are better by less than one standard error (measured
-    0.09 ± 0.10) and one Gaussian is kept."""
+    kept on 40 validation demos, whose samples score better by more than two standard errors (measured
+    0.15 ± 0.05 where the modes meet at the start); on 12 demos of those the samples are better by less than
+    one standard error (0.09 ± 0.10) and one Gaussian is kept."""
     from test_linear_conditioning import decoder_modes_model
     shape = (lambda x: 0.5 + np.sin(np.pi * x)) if apart_at_start else (lambda x: np.sin(np.pi * x))
     several, x = decoder_modes_model(shares=(0.5, 1.0), shape=shape)
@@ -201,7 +201,7 @@ def test_modes_are_kept_over_one_mode_only_where_they_score_better_and_no_mean_i
             assert start_modes < 0.5 * start_one, rec
         else:  # the weighted mean: within 5 % of the Gaussian's (measured 1.5 %)
             assert abs(start_modes / start_one - 1.0) < 0.05, rec
-        better = rec["relative_difference"] + rec["standard_error"] < 0
+        better = rec["relative_difference"] + 2.0 * rec["standard_error"] < 0
         assert keep == better, rec
         assert keep == (apart_at_start or n_val == 40), rec
     keep, rec = compare_modes(one, (several.net, several.norm), ["a", "b"], val, cfg)

@@ -176,15 +176,18 @@ def _prefer_first(es: np.ndarray, mse: np.ndarray, every_mean: bool = False
     """The rule of :func:`judge_residual` between two models from their scores (:func:`_pair_scores`:
     index 0 the richer model, 1 the simpler): each conditioning's energy scores divided by the simpler
     model's mean, :func:`keep_residual` on them, and the executed mean at the random via-point sets not
-    worse by more than one standard error (per-demo MSE differences relative to the simpler model's mean);
-    with ``every_mean`` the mean at every conditioning not worse by more than two (several tests at once:
-    about 7 % false alarms over three where one standard error each would give about 40 %). Returns (prefer the first, mean relative difference,
+    worse by more than one standard error (per-demo MSE differences relative to the simpler model's mean).
+    With ``every_mean`` (the modes against one Gaussian, :func:`compare_modes`) two standard errors for both:
+    the energy scores lower by more than two, and the mean at every conditioning not worse by more than two
+    (several tests at once: about 7 % false alarms over three where one standard error each would give
+    about 40 %). Returns (prefer the first, mean relative difference,
     its standard error, the via-point means' relative difference, its standard error, whether the means
     pass)."""
     scale = np.maximum(es[1].mean(1, keepdims=True), 1e-300)
     better, diff, se = keep_residual(es[0] / scale, es[1] / scale)
     via_diff, via_se = _relative_mse(mse, 1)
     if every_mean:
+        better = diff + 2.0 * se < 0.0
         mean_ok = all(d - 2.0 * e <= 0.0 for d, e in (_relative_mse(mse, c) for c in range(mse.shape[1])))
     else:
         mean_ok = via_diff - via_se <= 0.0
@@ -258,7 +261,9 @@ def compare_modes(several: tuple[DeepProMPNet, Normalization], one: tuple[DeepPr
                   one_context: dict | None = None) -> tuple[bool, dict]:
     """After a training of K > 1 modes (which the decoder holds): keep it over the training of one mode
     (``linear_modes`` 1, its residual judged) only when the validation demos' conditioned samples have a
-    lower energy score by more than one standard error (the rule of :func:`judge_residual`) and the
+    lower energy score by more than two standard errors (modes change the executed mean of every
+    conditioning, and the evidence they are worth it must be strong: demonstrations spread over a continuum
+    also split into modes of the basis weights, whose executed means are then worse) and the
     executed mean is worse by more than two standard errors at no conditioning (the start, the random
     via-point sets, the start with the contexts; :func:`_prefer_first`): the
     modes' mean weighs them by their posterior probabilities, which where the inputs cannot tell them apart
