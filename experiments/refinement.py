@@ -57,7 +57,7 @@ def error_curve(prim: DeepProMP, init, xv: np.ndarray, yv: np.ndarray, budgets) 
     else:
         errs = np.array([prim.refine(init, xv, yv, max_iterations=m, tol=TOL).max_error if m != max(budgets)
                          else res.max_error for m in budgets])
-    init_err = float(np.abs(yv - prim.decode(init.mean, xv)).max())
+    init_err = float(np.abs(yv - prim.mean_trajectory(init, xv)).max())
     errs = np.concatenate([[init_err], errs])  # budget 0: the initialization
     return errs, {"init_error": init_err, "final_error": res.max_error, "iterations": res.iterations,
                   "reachable": bool(res.reachable), "sample_mean_error": res.sample_mean_error,

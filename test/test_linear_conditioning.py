@@ -410,6 +410,10 @@ def test_the_executed_mean_weighs_the_modes_by_their_posterior_probabilities():
         assert mid == pytest.approx(lo + lat.mode_weights[1] * (hi - lo), abs=1e-9) and hi - lo > 1.9
         assert np.abs(prim.mean_trajectory(lat, xv) - yv).max() <= 1e-6
         assert block.via_error == pytest.approx(np.abs(prim.mean_trajectory(lat, xv) - yv).max(), abs=1e-12)
+    # at a large noise the weighted mean misses the via-points, by what via_error records
+    lat = model.condition(xv, yv + np.array([0.3, 0.0]), via_noise=3.0)
+    miss = np.abs(model.mean_trajectory(lat, xv) - yv - np.array([0.3, 0.0])).max()
+    assert miss > 1e-3 and lat.linear.via_error == pytest.approx(miss, rel=1e-9)
     lat = model.condition(np.array([0.5]), np.array([[0.15 + 1.0, 0.075 + 0.5]]))
     np.testing.assert_array_equal(lat.mode_weights, [0.0, 1.0])
     np.testing.assert_allclose(model.mean_trajectory(lat, x), model.decode(lat.mean, x), atol=1e-12)
@@ -457,6 +461,17 @@ def test_a_context_modelled_per_mode_chooses_the_mode():
         assert np.mean(_modes(prim, prim.sample(lat, np.array([0.5]), 500, rng=6)[:, 0]) == sign) == 1.0
         lat = prim.condition(contexts={"side": np.array([[side]])})  # the context alone
         assert _modes(prim, prim.mean_trajectory(lat, np.array([0.5])))[0] == sign
+        # a via-point where the modes meet, at a noise the mean misses it by: the refinement conditions again
+        # on the via-point alone and keeps the modes' weights the context gave
+        xv, yv = np.array([0.0]), np.array([[0.1, 0.05]])
+        lat = prim.condition(xv, yv, contexts={"side": np.array([[side]])}, via_noise=1.0)
+        assert lat.mode_weights[(sign + 1) // 2] > 0.999 and lat.linear.via_error > 1e-3
+        res = prim.refine_linear(lat, xv, yv, tol=1e-6)
+        assert res.max_error <= 1e-6 and np.abs(prim.mean_trajectory(res.latent, xv) - yv).max() <= 1e-6
+        np.testing.assert_array_equal(res.latent.mode_weights, lat.mode_weights)
+        import pickle
+        again = pickle.loads(pickle.dumps(res.latent))
+        np.testing.assert_array_equal(prim.mean_trajectory(again, x), prim.mean_trajectory(res.latent, x))
 
 
 # ------------------------------------------------------------------------------------------------

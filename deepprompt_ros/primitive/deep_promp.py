@@ -270,7 +270,9 @@ class DeepProMP:
         weighted by the closed-form marginal likelihood of the via-points times q_c(z_nl) / q_all(z_nl)
         (importance weights of the posterior under the prior q_c); z_lin is conditioned exactly on the
         observed joints of each via-point, whose weight ω scales its precision. The mean is the
-        candidate of the highest posterior density with its z_lin posterior mean; :meth:`sample` draws
+        candidate of the highest posterior density with its z_lin posterior mean (with several modes of the
+        decoder and no MLP residual: the modes' z_lin means weighted by the modes' posterior probabilities
+        at ``mode_noise``, the executed mean weighing the modes' offsets alike); :meth:`sample` draws
         candidates by
         weight and z_lin from its posterior, so samples pass the via-points within the noise.
         Without a via-point of weight > 0 both give the aggregation. The latent records q_c

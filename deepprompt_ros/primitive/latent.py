@@ -160,7 +160,8 @@ class LatentGaussian:
 
     ``mean`` is the latent the robot executes and ``var`` the diagonal summary that blending (paper
     Eq. 4) and the server's handles use. With ``linear`` set (a split latent), ``mean`` is the
-    candidate of the highest posterior density with its z_lin posterior mean, ``var`` the diagonal of the z_lin
+    candidate of the highest posterior density with its z_lin posterior mean (with ``mode_weights``: the
+    modes' z_lin means weighted by them), ``var`` the diagonal of the z_lin
     posterior covariance and the variance of q(z_nl) (the candidates' proposal); sampling and the
     full covariance come from ``linear``. A split latent made without ``var`` computes it from
     ``linear`` when it is first read (executing the mean needs only ``mean``).

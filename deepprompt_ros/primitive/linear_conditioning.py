@@ -244,7 +244,8 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
                     noise: float, n_candidates: int = 32, seed: int = 0,
                     candidates_nl: np.ndarray | None = None,
                     context_rows: tuple[np.ndarray, np.ndarray] | None = None,
-                    smooth_noise: float | None = None, weight_noise: float | None = None) -> LatentGaussian:
+                    smooth_noise: float | None = None, weight_noise: float | None = None,
+                    fixed_weights: np.ndarray | None = None) -> LatentGaussian:
     """q(z) of a split latent: z_lin exactly conditioned on the via-points for each z_nl candidate.
 
     Parameters
@@ -285,6 +286,10 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
     weight_noise : float, optional
         With several modes of the decoder: the via-point noise the modes' weights are computed at instead of
         ``noise`` (``ModelConfig.mode_noise``; the context rows keep theirs).
+    fixed_weights : array, shape (C,), optional
+        With several modes and no MLP residual: the candidates' weights to keep instead of computing them
+        (:func:`refine_split` conditions again on the via-points alone, and the evidence for the modes stays
+        that of the first conditioning, contexts included).
 
     Returns
     -------
@@ -360,12 +365,20 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
         return _overflow(net.cfg.latent_dim, context_mean, context_var)
     if single:
         weights, best = np.ones(1), 0
+    elif modes and fixed_weights is not None and not net.mlp_active:
+        weights = np.asarray(fixed_weights, dtype=np.float64)
+        best = int(np.argmax(weights))
     elif modes:
         weight_noise = None if weight_noise is None or weight_noise == noise or not n_via else float(weight_noise)
         if weight_noise is not None:  # the via rows whitened at weight_noise: rows and residuals times ν / ν_w
             rows = np.ones(g.shape[0])
             rows[:n_via] = noise / weight_noise
-            loglik = whitened_posterior(g * rows[:, None], d * rows, with_mean=False)[3]
+            try:
+                at_weight_noise = whitened_posterior(g * rows[:, None], d * rows, with_mean=False)[3]
+            except np.linalg.LinAlgError:  # (a weight noise far below the request's): the weights at ``noise``
+                at_weight_noise = None
+            if at_weight_noise is not None and math.isfinite(at_weight_noise.sum()):
+                loglik = at_weight_noise
         weights, best = _mode_weights(net, candidates_nl, loglik, prior_mean, prior_var)
     else:
         # the posterior ∝ p(via-points | z_nl) q_c(z_nl): the executed mean is the candidate of the highest
@@ -547,7 +560,8 @@ def refine_split(net: "NumpyNet", latent: LatentGaussian, x: np.ndarray, y: np.n
             with np.errstate(all="ignore"):
                 lat = condition_split(net, latent.context_mean, latent.context_var, latent.mean, all_var, x, y,
                                       None, mask, noise, candidates_nl=cands,
-                                      weight_noise=latent.linear.weight_noise or latent.linear.noise)
+                                      weight_noise=latent.linear.weight_noise or latent.linear.noise,
+                                      fixed_weights=None if latent.mode_weights is None else latent.linear.weights)
             err = error(lat)
         except ValueError:  # the factorization failed at this noise
             reason = "the conditioning's factorization failed at a smaller noise"

@@ -37,7 +37,9 @@ class RefinementResult:
     Attributes
     ----------
     latent : LatentGaussian
-        Refined (μ̃, σ̃²). The executed trajectory is the decoder at z = μ̃.
+        Refined (μ̃, σ̃²). The executed trajectory is the decoder at z = μ̃ (with the decoder's modes
+        weighted by the latent's ``mode_weights`` when it has them:
+        :meth:`~deepprompt_ros.primitive.deep_promp.DeepProMP.mean_trajectory`).
     max_error : float
         max_i,j |y_ij − μ_y(μ̃, x_i)_j| over the constrained joints (rad): what the robot will miss by.
     errors : array, shape (n, d)
@@ -449,4 +451,4 @@ def refine_exact(prim: "DeepProMP", latent: LatentGaussian, via_x, via_y, joint_
     return RefinementResult(
         latent=LatentGaussian(mu, s ** 2), max_error=max_err, errors=r, iterations=it,
         sample_mean_error=float(np.abs((y - y_bar) * fit.mf).max()), reachable=max_err <= tol, reason=reason,
-        error_history=np.array(fit.history), out_of_time=out_of_time)
+        error_history=np.minimum.accumulate(np.array(fit.history)), out_of_time=out_of_time)

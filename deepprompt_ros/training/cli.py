@@ -110,7 +110,7 @@ def _train(args, cfg: TrainConfig, run: distributed.Runtime) -> int:
     print(f"best validation MSE {best:.3e} rad²; checkpoint written to {pathlib.Path(args.out).resolve()}")
     trained = info["train_config"]
     chosen = {k: trained[k] for k in ("decoder_basis", "latent_linear", "latent_dim", "basis_cov_reg", "linear_modes",
-                                      "basis_cov_reg_units", "via_noise", "residual_scale")} if cfg.auto_select else {}
+                                      "basis_cov_reg_units", "via_noise", "mode_noise", "residual_scale")} if cfg.auto_select else {}
     print(json.dumps({"out": str(pathlib.Path(args.out).resolve()), "best_val_mse_rad2": best, "selected": chosen,
                       "samples_per_s": hist[-1]["samples_per_s"], "device": str(run.device), "backend": run.backend,
                       "world_size": run.world_size}))

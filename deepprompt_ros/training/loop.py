@@ -288,7 +288,8 @@ def selection_line(selection: dict) -> str:
         modes = f"linear_modes {lin['linear_modes']} ({fallback['reason']})"
     elif fallback["kept_modes"]:
         modes = (f"linear_modes {lin['linear_modes']} kept over one mode (energy score's relative difference "
-                 f"{fallback['relative_difference']:+.3f} ± {fallback['standard_error']:.3f})")
+                 f"{fallback['relative_difference']:+.3f} ± {fallback['standard_error']:.3f}; via_noise "
+                 f"{fallback['noise']['via_noise']:g}, mode_noise {fallback['noise']['mode_noise']:g})")
     else:
         why = fallback.get("reason") or (f"not better than one mode: energy score's relative difference "
                                          f"{fallback['relative_difference']:+.3f} ± {fallback['standard_error']:.3f}, "

@@ -383,9 +383,12 @@ def choose_context_paths(net: DeepProMPNet, norm: Normalization, joint_names, cf
     base = DeepProMP(net, norm, joint_names, name="selection")
     x = np.linspace(0.0, 1.0, cfg.n_points)
     # each demo's z_lin given all its points (with several modes: of the candidate, and so the mode, of the
-    # highest posterior density)
+    # largest weight, not the modes' weighted mean the robot executes)
     k_l, k_m = cfg.latent_linear, net.cfg.decoder_modes
-    latents = np.stack([base.condition(x, d.resampled(cfg.n_points), n_candidates=32 if k_m else 0).mean
+
+    def top_candidate(lat):
+        return lat.mean if lat.linear is None else lat.linear.candidates[int(np.argmax(lat.linear.weights))]
+    latents = np.stack([top_candidate(base.condition(x, d.resampled(cfg.n_points), n_candidates=32 if k_m else 0))
                         for d in train_ds.demos])
     labels = base.mode_of(latents) if k_m else None
     model = fit_linear_context({n: np.stack([d.contexts[n].mean(0) for d in train_ds.demos]) for n in names},
