@@ -166,7 +166,7 @@ def test_architecture_parameters_are_declared_once_in_the_model_config():
 
     model = {s.name: s for s in specs_of(ModelConfig)}
     shared = [s for s in specs_of(TrainConfig) + specs_of(ConcatNetConfig) if s.name in model]
-    assert len(shared) == 11 + 7 and all(s == model[s.name] for s in shared)
+    assert len(shared) == 12 + 7 and all(s == model[s.name] for s in shared)
     for make in (lambda: TrainConfig(decoder_basis=1), lambda: ModelConfig(n_joints=1, decoder_basis=1)):
         with pytest.raises(ConfigError, match=r"decoder_basis = 1: expected 0 \(no linear basis\) or >= 2"):
             make()
