@@ -15,10 +15,11 @@ from deepprompt_ros.model.checkpoint import load_checkpoint
 from deepprompt_ros.model.network import DeepProMPNet, ModelConfig
 from deepprompt_ros.primitive.deep_promp import DeepProMP
 from deepprompt_ros.model.phase import phase_basis
-from deepprompt_ros.training.basis import (MODE_DIP, basis_weights, mode_dip, pca_basis, weight_modes)
+from deepprompt_ros.training.basis import (CV_VIA_NOISES, MODE_DIP, MODE_MEAN_MARGIN, basis_weights, cv_modes, mode_dip,
+                                          pca_basis, weight_modes)
 from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.distributed import Runtime
-from deepprompt_ros.training.loop import judge_with_fallback, train
+from deepprompt_ros.training.loop import judge_with_fallback, selection_line, train
 from deepprompt_ros.training.selection import (MODE_NOISES, choose_mode_noise, compare_modes, select_linear_part,
                                                with_via_noise)
 from deepprompt_ros.training.tensors import fit_normalization
@@ -115,6 +116,46 @@ def test_the_selection_records_the_modes_it_chose():
     assert out.linear_modes == 1 and rec["modes"]["n_modes"] == 1
 
 
+def _two_amplitudes(rng):
+    return (1.0 if rng.random() < 0.5 else -1.0) + rng.normal(0.0, 0.1, 3)
+
+
+def test_the_cross_validation_admits_modes_whose_means_are_not_worse():
+    # amplitudes ±1: two modes, which the start point cannot tell apart and 5 via-points can
+    cfg = TrainConfig(n_points=T, cv_folds=3)
+    out, rec = select_linear_part(curves(60, 1, _two_amplitudes), cfg, 3)
+    r = rec["modes"]["cross_validation"]
+    assert out.linear_modes == 2 and r["admitted"] and r["conditionings"] == ["start", "start+end",
+                                                                              "random via-points"]
+    diff, se = np.array(r["relative_difference"]), np.array(r["standard_error"])
+    assert diff[2] < -0.3 and diff[2] + 2 * se[2] < 0  # the via-points' means much better with the modes
+    assert np.all(diff <= 2 * se) and r["via_noise"] in CV_VIA_NOISES and r["mode_noise"] >= r["via_noise"]
+    assert r["mse_modes"][2] < r["mse_one_mode"][2] and r["better"]
+    # one Gaussian of amplitudes split into two modes: the within-mode covariance from half the demos each
+    # makes the means from the start and from start + end worse by more than two standard errors
+    ds = curves(60, 1, lambda rng: rng.normal(1.0, 0.3, 3))
+    _, rec = select_linear_part(ds, cfg, 3)
+    assert rec["modes"]["n_modes"] == 1  # BIC keeps one; the cross-validation is asked of two
+    r = cv_modes(ds, T, rec, 2, folds=3, seed=0)
+    diff, se = np.array(r["relative_difference"]), np.array(r["standard_error"])
+    assert not r["admitted"] and not r["better"] and np.any((diff > 2 * se) & (diff > MODE_MEAN_MARGIN))
+    assert r == cv_modes(ds, T, rec, 2, folds=3, seed=0)  # deterministic
+    with pytest.raises(ValueError, match="n_modes >= 2"):
+        cv_modes(ds, T, rec, 1)
+
+
+def test_the_selection_drops_modes_the_cross_validation_does_not_admit(monkeypatch):
+    import deepprompt_ros.training.selection as selection
+    ds, cfg = curves(60, 1, _two_amplitudes), TrainConfig(n_points=T, cv_folds=3)
+    real = selection.cv_modes
+    monkeypatch.setattr(selection, "cv_modes", lambda *a, **k: {**real(*a, **k), "admitted": False})
+    out, rec = select_linear_part(ds, cfg, 3)
+    assert out.linear_modes == 1 and rec["linear_modes"] == 1 and rec["modes"]["n_modes"] == 2
+    assert not rec["modes"]["cross_validation"]["admitted"]
+    line = selection_line({"linear_part": rec, "residual": {"kept": False, "reason": "none"}})
+    assert "2 modes of the basis weights not admitted" in line and line.endswith("linear_modes 1; residual: none")
+
+
 # ----------------------------------------------------------------------------- training with the modes
 def test_the_decoder_holds_the_modes_beside_a_dropped_residual(tmp_path):
     # one update at a learning rate of 1 leaves the MLP residual garbage: the energy score drops it; the modes
@@ -208,10 +249,12 @@ def test_modes_are_kept_over_one_mode_only_where_they_score_better_and_no_mean_i
     assert not keep and rec["relative_difference"] > 0, rec
 
 
-@pytest.mark.parametrize("judge_modes", [False, True])
-def test_judge_modes_false_keeps_the_modes_at_their_chosen_noise_without_the_training_with_one_mode(judge_modes):
-    """With ``judge_modes`` false the two-mode model is served with the via-point noise that fits the
-    validation demos best: no training with one mode runs and the record says why; true: that training runs."""
+@pytest.mark.parametrize("judge_modes, cv_better", [(False, False), (True, False), (True, True)])
+def test_judge_modes_false_keeps_the_modes_at_their_chosen_noise_without_the_training_with_one_mode(judge_modes,
+                                                                                                    cv_better):
+    """With ``judge_modes`` false, or where the selection's cross-validation found the modes' executed means
+    better, the two-mode model is served with the via-point noise that fits the validation demos best: no
+    training with one mode runs and the record says why; else that training runs."""
     from test_linear_conditioning import decoder_modes_model
     several, x = decoder_modes_model(shares=(0.5, 1.0))
     _, y_val = _bimodal_demos(12, 2)
@@ -220,7 +263,8 @@ def test_judge_modes_false_keeps_the_modes_at_their_chosen_noise_without_the_tra
                       latent_linear=16, via_noise=1.0)
     selection = {"linear_part": {"decoder_basis": 8, "latent_linear": 16, "latent_dim": 17, "basis_cov_reg": 0.05,
                                  "basis_cov_reg_units": "normalized", "via_noise": 1.0, "method": "by hand",
-                                 "linear_modes": 2}}
+                                 "linear_modes": 2, "modes": {"n_modes": 2, "cross_validation": {
+                                     "admitted": True, "better": cv_better}}}}
     calls, lines = [], []
 
     def fit_again(c):
@@ -231,7 +275,7 @@ def test_judge_modes_false_keeps_the_modes_at_their_chosen_noise_without_the_tra
         return judge_with_fallback(cfg, (several.net, several.norm, [], 0.0), selection, lines.append, fit_again,
                                    Runtime(), ["a", "b"], val, None)
 
-    if judge_modes:
+    if judge_modes and not cv_better:
         with pytest.raises(RuntimeError, match="one mode"):
             run()
         assert calls == [1]
@@ -246,8 +290,9 @@ def test_judge_modes_false_keeps_the_modes_at_their_chosen_noise_without_the_tra
     rel = record["noise"]["mode_noise_relative_mse_start_plus_random"]
     assert net.cfg.mode_noise == out_cfg.mode_noise == record["noise"]["mode_noise"] == float(min(rel, key=rel.get))
     assert sorted(rel, key=float) == [f"{v:g}" for v in MODE_NOISES if v >= net.cfg.via_noise]
-    assert record["kept_modes"] and "judge_modes false" in record["reason"]
-    assert "linear_modes 2 (judge_modes false" in lines[-1]
+    why = "the cross-validation's executed means better with the modes" if cv_better else "judge_modes false"
+    assert record["kept_modes"] and record["reason"] == f"{why}: kept without the training with one mode"
+    assert f"linear_modes 2 ({why}" in lines[-1]
 
 
 def test_the_modes_weights_noise_is_chosen_where_the_modes_offsets_differ_by_their_estimation_error():

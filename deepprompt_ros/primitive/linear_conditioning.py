@@ -379,6 +379,8 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
                 at_weight_noise = None
             if at_weight_noise is not None and math.isfinite(at_weight_noise.sum()):
                 loglik = at_weight_noise
+            else:  # the weights at ``noise``, and the latent records that noise (a refinement conditions again at it)
+                weight_noise = None
         weights, best = _mode_weights(net, candidates_nl, loglik, prior_mean, prior_var)
     else:
         # the posterior ∝ p(via-points | z_nl) q_c(z_nl): the executed mean is the candidate of the highest

@@ -23,7 +23,7 @@ __all__ = ["basis_weights", "pca_basis", "WeightModes", "weight_modes", "mode_di
            "init_basis_pca",
            "MAX_MODES", "MODE_VARIANCE", "MODE_DEMOS_PER_DIM", "MODE_DIP", "MODE_MIN_SHARE", "MODE_MIN_DEMOS",
            "linear_map_condition", "fold_assignment", "cv_via_sets", "CV_CONDITIONINGS",
-           "cv_score", "PROMP_FORM", "AUTO_DECODER_BASIS", "AUTO_LATENT_LINEAR", "AUTO_COV_REGS", "CV_VIA_NOISES",
+           "cv_score", "cv_modes", "MODE_NOISES", "MODE_MEAN_MARGIN", "PROMP_FORM", "AUTO_DECODER_BASIS", "AUTO_LATENT_LINEAR", "AUTO_COV_REGS", "CV_VIA_NOISES",
            "cv_basis_hyperparameters"]
 
 
@@ -560,23 +560,161 @@ def _conditioned_errors(phi, mean, a, ks, sel, y_true, std, noise2, meet: bool =
     res = (yv - ph @ wm).reshape(b, v * d)  # innovations, rows (via, joint)
     jac_all = (ph @ a.reshape(nb, -1)).reshape(b, v * d, -1)  # (B, V·d, K): row (v, j) = Σ_n φ_n(x_v) a[n·d + j]
     if meet and "metric" not in cache:
-        a_rad = a.reshape(nb, d, -1) * np.asarray(std, dtype=np.float64)[None, :, None]  # (n_b, d, K), joint units
-        p_a = ((phi.T @ phi) @ a_rad.reshape(nb, -1)).reshape(nb * d, -1)  # ΦᵀΦ A, rows (n, j)
-        cache["metric"] = a_rad.reshape(nb * d, -1).T @ p_a  # (K, K) = Σ_j A_jᵀ ΦᵀΦ A_j
+        cache["metric"] = _metric(phi, a, std)
     out = []
     for k in ks:
-        jac = jac_all[:, :, :k]
-        e, u = np.linalg.eigh(jac @ jac.transpose(0, 2, 1))  # (B, M), (B, M, M)
-        c = (u.transpose(0, 2, 1) @ res[:, :, None])  # Uᵀ r, (B, M, 1)
-        coef = u @ (c / (np.clip(e, 0.0, None)[:, :, None] + noise2))  # (B, M, S)
-        z = jac.transpose(0, 2, 1) @ coef  # (B, k, S) posterior means
-        if meet and v * d <= k:
-            if k not in cache:
-                cache[k] = np.linalg.pinv(cache["metric"][:k, :k], hermitian=True)
-            hm = jac @ cache[k]  # (B, M, k) = J M⁻¹
-            gram = hm @ jac.transpose(0, 2, 1)  # (B, M, M) = J M⁻¹ Jᵀ
-            z = z + hm.transpose(0, 2, 1) @ (np.linalg.pinv(gram, hermitian=True) @ (res[:, :, None] - jac @ z))
-        w = (a[:, :k] @ z).reshape(b, nb, d * s)  # (B, n_b, d·S) weight offsets
-        pred = (phi @ w).reshape(b, t, d, s) + (phi @ wm)[None, :, :, None]
+        if meet and v * d <= k and k not in cache:
+            cache[k] = np.linalg.pinv(cache["metric"][:k, :k], hermitian=True)
+        pred = _posterior_means(phi, wm, a[:, :k], jac_all[:, :, :k], res, noise2,
+                                cache[k] if meet and v * d <= k else None)[0]
         out.append((((pred - y_true[..., None]) * std[:, None]) ** 2).mean((1, 2)))
     return out
+
+
+def _posterior_means(phi, wm, a, jac, res, noise2, metric_inv=None):
+    """The trajectories of the posterior means of z ~ N(0, I) in Φ(b + A z) given the innovations ``res``
+    (B, M) = J z + ε, ε ~ N(0, noise² I), for each noise variance of ``noise2`` (S,): z = Jᵀ (J Jᵀ + noise²
+    I)⁻¹ r through the eigendecomposition of J Jᵀ; with ``metric_inv`` (M⁻¹ of
+    :func:`_conditioned_errors`) moved onto the via-points by the smallest change. phi (T, n_b), wm (n_b,
+    d) the weights b, a (n_b·d, k), jac (B, M, k). Returns (trajectories (B, T, d, S), the eigenvalues
+    e (B, M) of J Jᵀ, the innovations in its eigenvectors' basis Uᵀ r (B, M)): log N(r; 0, J Jᵀ + σ² I)
+    = −½ Σ (Uᵀr)² / (e + σ²) − ½ Σ log(e + σ²) − M/2 log 2π."""
+    (t, nb), (b, _, k), d, s = phi.shape, jac.shape, wm.shape[1], noise2.size
+    e, u = np.linalg.eigh(jac @ jac.transpose(0, 2, 1))  # (B, M), (B, M, M)
+    c = (u.transpose(0, 2, 1) @ res[:, :, None])  # Uᵀ r, (B, M, 1)
+    coef = u @ (c / (np.clip(e, 0.0, None)[:, :, None] + noise2))  # (B, M, S)
+    z = jac.transpose(0, 2, 1) @ coef  # (B, k, S) posterior means
+    if metric_inv is not None:
+        hm = jac @ metric_inv  # (B, M, k) = J M⁻¹
+        gram = hm @ jac.transpose(0, 2, 1)  # (B, M, M) = J M⁻¹ Jᵀ
+        z = z + hm.transpose(0, 2, 1) @ (np.linalg.pinv(gram, hermitian=True) @ (res[:, :, None] - jac @ z))
+    w = (a @ z).reshape(b, nb, d * s)  # (B, n_b, d·S) weight offsets
+    pred = (phi @ w).reshape(b, t, d, s) + (phi @ wm)[None, :, :, None]
+    return pred, np.clip(e, 0.0, None), c[:, :, 0]
+
+
+#: The noises of the modes' posterior probabilities :func:`cv_modes` tries (``ModelConfig.mode_noise``,
+#: normalized joint units), those >= the chosen via-point noise.
+MODE_NOISES = (*CV_VIA_NOISES, 0.3, 1.0)
+
+
+#: The relative MSE by which the modes' means may be worse than one Gaussian's at a conditioning of
+#: :func:`cv_modes` whatever its standard error (2 %): the within-mode covariance is estimated from fewer
+#: demos, and modes that are there (two branches of a sine, 100–200 demos) cost about 1 % from the start
+#: point, where the inputs cannot tell them apart.
+MODE_MEAN_MARGIN = 0.02
+
+
+def cv_modes(ds: DemoDataset, n_points: int, linear_part: dict, n_modes: int, basis_width: float = 1.0,
+             n_via: int = 5, folds: int = 5, draws: int = 2, seed: int = 0) -> dict:
+    """Whether K = ``n_modes`` modes of the basis weights (:func:`weight_modes`) make the executed means of
+    held-out demonstrations no worse than one Gaussian does: K-fold cross-validation on the demonstrations
+    ``ds`` alone, of the linear part ``linear_part`` (``decoder_basis``, ``latent_linear``, ``basis_cov_reg``,
+    ``basis_cov_reg_units``, ``via_noise`` as :func:`cv_basis_hyperparameters` chose them) with and without
+    the modes, in closed form (the trained decoder's linear part is this PPCA, ``basis_lr_scale`` 0).
+
+    Per fold, on the other demos: the normalization, the K modes (``n_modes`` fixed, seed ``seed``), the
+    PPCA within them (:func:`pca_basis` with the labels) with each mode's mean weights and share, and the
+    PPCA of all. Each held-out demo is conditioned on the sets of :func:`cv_via_sets` (start, start + end,
+    ``draws`` sets of ``n_via`` points): one Gaussian by its posterior mean at ``via_noise`` moved onto the
+    via-points (as :func:`cv_basis_hyperparameters` with ``meet``); the modes by each mode's such mean at a
+    noise ν of :data:`CV_VIA_NOISES`, weighted by the mode's posterior probability (its share times the
+    exact likelihood of the via-points at a noise ν_m >= ν of :data:`MODE_NOISES`): the executed mean of a
+    decoder of several modes. The modes' noises are chosen as
+    :func:`deepprompt_ros.training.selection.choose_mode_noise` chooses them on the validation demos after
+    the training (the linear part within the modes is not the one the noise was cross-validated for): ν
+    of the lowest MSE at the random sets (ν_m = ν), then ν_m of the lowest sum of the start's and the random
+    sets' MSEs, each relative to its value at ν_m = ν.
+
+    Modes of the weights are found on demonstrations spread over a continuum too, and their means are then
+    worse: the modes are ``admitted`` only where no conditioning's mean MSE is higher with them by more than
+    two standard errors (per-demo MSE differences relative to one Gaussian's mean MSE — the comparison the
+    goal of never losing to ProMP makes; two for three tests at once, about 7 % false alarms where one each
+    would give about 40 %) and by more than :data:`MODE_MEAN_MARGIN`; they are ``better`` where admitted and,
+    at some conditioning, lower by more than two standard errors (the executed means' own evidence for the
+    modes). Returns {"admitted", "better", "via_noise",
+    "mode_noise", "conditionings" (the first three of :data:`CV_CONDITIONINGS`), "relative_difference" and
+    "standard_error" per conditioning, "mse_modes",
+    "mse_one_mode" (rad², per conditioning), "folds", "n_demos"}."""
+    demos = ds.demos
+    n = len(demos)
+    if n < 3 or n_modes < 2:
+        raise ValueError(f"cv_modes needs >= 3 demonstrations and n_modes >= 2, got {n} and {n_modes}")
+    nb, k = int(linear_part["decoder_basis"]), int(linear_part["latent_linear"])
+    lam, noise = float(linear_part["basis_cov_reg"]), float(linear_part["via_noise"])
+    vias, weight_noises = np.asarray(CV_VIA_NOISES), np.asarray(MODE_NOISES)
+    folds = max(2, min(int(folds), n))
+    fold_of = fold_assignment(n, folds, seed)
+    x = np.linspace(0.0, 1.0, n_points)
+    phi = np.asarray(phase_basis(x, nb, basis_width, ds.phase_type == "rhythmic"))
+    y_all = np.stack([dm.resampled(n_points) for dm in demos])  # (n, T, d) rad
+    d = y_all.shape[2]
+    sets = cv_via_sets(n_points, n, n_via, draws, seed)
+    n_sets = len(sets[0])
+    err_one = np.zeros((n, n_sets))
+    err_modes = np.zeros((n, n_sets, vias.size, weight_noises.size))
+    for f in range(folds):
+        tr, te = np.flatnonzero(fold_of != f), np.flatnonzero(fold_of == f)
+        norm = fit_normalization(DemoDataset(tuple(demos[i] for i in tr), ds.source), n_points)
+        std = np.asarray(norm.y_std, dtype=np.float64)
+        yn = (y_all - norm.y_mean) / std
+        joint_std = std if linear_part["basis_cov_reg_units"] == "raw" else None
+        w = basis_weights(phi, yn[tr])
+        labels = weight_modes(w, seed, n_modes).labels
+        groups = int(labels.max()) + 1
+        mean_1, a_1, _ = pca_basis(phi, yn[tr], k, lam, joint_std=joint_std)
+        a_k = pca_basis(phi, yn[tr], k, lam, joint_std=joint_std, labels=labels if groups > 1 else None)[1]
+        centres = np.stack([w[labels == g].mean(0) for g in range(groups)]).reshape(groups, nb, d)
+        log_shares = np.log(np.bincount(labels, minlength=groups) / labels.size)
+        inv_1, inv_k = (np.linalg.pinv(_metric(phi, a, std), hermitian=True) for a in (a_1, a_k))
+        for j in range(n_sets):
+            sel = np.stack([sets[i][j] for i in te])  # (B, V)
+            ph = phi[sel]  # (B, V, n_b)
+            yv = np.take_along_axis(yn[te], sel[:, :, None], 1)  # (B, V, d)
+            meet = sel.shape[1] * d <= k
+
+            def means(centre, a, inverse, noise2):
+                jac = (ph @ a.reshape(nb, -1)).reshape(len(te), -1, a.shape[1])
+                res = (yv - ph @ centre).reshape(len(te), -1)
+                return _posterior_means(phi, centre, a, jac, res, noise2, inverse if meet else None)
+            pred = means(mean_1.reshape(nb, d), a_1, inv_1, np.array([noise ** 2]))[0][..., 0]
+            err_one[te, j] = (((pred - yn[te]) * std) ** 2).mean((1, 2))
+            preds, logliks = [], []
+            for centre in centres:
+                pred, e, c = means(centre, a_k, inv_k, vias ** 2)
+                preds.append(pred)  # (B, T, d, S_v)
+                var = e[:, :, None] + weight_noises[None, None, :] ** 2  # (B, M, S_m)
+                logliks.append(-0.5 * ((c[:, :, None] ** 2 / var) + np.log(var)).sum(1))  # (B, S_m)
+            log_w = np.stack(logliks) + log_shares[:, None, None]  # (K, B, S_m)
+            wts = np.exp(log_w - log_w.max(0, keepdims=True))
+            wts /= wts.sum(0, keepdims=True)
+            mixed = np.einsum("kbm,kbtdv->bvmtd", wts, np.stack(preds))  # (B, S_v, S_m, T, d)
+            err_modes[te, j] = (((mixed - yn[te][:, None, None]) * std) ** 2).mean((3, 4))
+    at_own = [err_modes[:, 2:, v, int(np.flatnonzero(weight_noises == via)[0])].mean() for v, via in enumerate(vias)]
+    v_best = int(np.argmin(at_own))
+    m_own = int(np.flatnonzero(weight_noises == vias[v_best])[0])
+    candidates = np.flatnonzero(weight_noises >= vias[v_best])
+    base = np.array([err_modes[:, 0, v_best, m_own].mean(), err_modes[:, 2:, v_best, m_own].mean()])
+    rel = [err_modes[:, 0, v_best, m].mean() / max(base[0], 1e-300) + err_modes[:, 2:, v_best, m].mean()
+           / max(base[1], 1e-300) for m in candidates]
+    m_best = int(candidates[int(np.argmin(rel))])
+    chosen = err_modes[:, :, v_best, m_best]
+    per = lambda e: np.stack([e[:, 0], e[:, 1], e[:, 2:].mean(1)], 1)  # noqa: E731  (n, 3): the random sets averaged
+    diff = (per(chosen) - per(err_one)) / np.maximum(per(err_one).mean(0), 1e-300)
+    mean, se = diff.mean(0), diff.std(0, ddof=1) / np.sqrt(n)
+    worse = (mean > 2.0 * se) & (mean > MODE_MEAN_MARGIN)
+    parts = lambda e: [float(e[:, 0].mean()), float(e[:, 1].mean()), float(e[:, 2:].mean())]  # noqa: E731
+    return {"admitted": not bool(worse.any()), "better": not bool(worse.any()) and bool(np.any(mean + 2.0 * se < 0)),
+            "via_noise": float(vias[v_best]),
+            "mode_noise": float(weight_noises[m_best]), "conditionings": list(CV_CONDITIONINGS[:3]),
+            "relative_difference": mean.tolist(), "standard_error": se.tolist(), "mse_modes": parts(chosen),
+            "mse_one_mode": parts(err_one), "folds": folds, "n_demos": n}
+
+
+def _metric(phi, a, std) -> np.ndarray:
+    """M = Σ_j std_j² A_jᵀ ΦᵀΦ A_j (K, K), the squared change of the trajectory over the phases in rad per
+    change of z (A_j the rows of joint j of ``a`` (n_b·d, K); ``std`` (d,) the joints' normalization)."""
+    nb, d = phi.shape[1], np.size(std)
+    a_rad = a.reshape(nb, d, -1) * np.asarray(std, dtype=np.float64)[None, :, None]  # (n_b, d, K), joint units
+    p_a = ((phi.T @ phi) @ a_rad.reshape(nb, -1)).reshape(nb * d, -1)  # ΦᵀΦ A, rows (n, j)
+    return a_rad.reshape(nb * d, -1).T @ p_a

@@ -106,8 +106,9 @@ def judge_with_fallback(cfg: TrainConfig, fitted: tuple, selection: dict, log, f
     ``cfg.linear_modes`` > 1 modes (which the decoder holds, ``ModelConfig.decoder_modes``) the training
     runs again with one (``fit_again(cfg)`` -> fitted), its residual is judged, and the modes are kept
     only if :func:`~deepprompt_ros.training.selection.compare_modes` prefers them, each with its judged
-    residual and its path of the low-dimensional contexts (with ``cfg.judge_modes`` false the modes are
-    kept without that training). The judgements are made on
+    residual and its path of the low-dimensional contexts. The modes are kept without that training
+    where the selection's cross-validation found their executed means better
+    (:func:`~deepprompt_ros.training.basis.cv_modes`, ``better``) or ``cfg.judge_modes`` is false. The judgements are made on
     process 0 of ``run`` and shared (``val_ds`` may be None elsewhere). The records go into
     ``selection``, the choices into one log line. Returns (the configuration trained, with its residual
     scale; the fitted network, normalization, history and best validation MSE)."""
@@ -123,11 +124,14 @@ def judge_with_fallback(cfg: TrainConfig, fitted: tuple, selection: dict, log, f
 
     net, norm, history, best = fitted
     net, selection["residual"] = judge(net, norm, cfg)
-    if cfg.linear_modes > 1 and not cfg.judge_modes:
+    modes_cv = selection.get("linear_part", {}).get("modes", {}).get("cross_validation") or {}
+    if cfg.linear_modes > 1 and (not cfg.judge_modes or modes_cv.get("better")):
         net, noise = run.broadcast(choose_mode_noise(net, norm, joint_names, val_ds, cfg) if run.is_main else None)
         cfg = dataclasses.replace(cfg, via_noise=noise["via_noise"], mode_noise=noise["mode_noise"])
+        why = ("judge_modes false" if not cfg.judge_modes else
+               "the cross-validation's executed means better with the modes")
         selection["modes_fallback"] = {"linear_modes": cfg.linear_modes, "kept_modes": True, "noise": noise,
-                                       "reason": "judge_modes false: kept without the training with one mode"}
+                                       "reason": f"{why}: kept without the training with one mode"}
     elif cfg.linear_modes > 1:
         several, modes_cfg, modes_fitted = selection.pop("residual"), cfg, (net, norm, history, best)
         log(f"residual {'kept' if several['kept'] else 'dropped'} beside the linear part of {cfg.linear_modes} "
@@ -282,7 +286,13 @@ def selection_line(selection: dict) -> str:
          f"{res['via_mean_relative_difference']:+.3f} ± {res['via_mean_standard_error']:.3f} on the {res['n_val']} "
          f"{res['judged_on']})" if "relative_difference" in res else f"residual: {res['reason']}")
     fallback = selection.get("modes_fallback")
-    if not fallback:
+    modes_cv = lin.get("modes", {}).get("cross_validation")
+    if modes_cv and not modes_cv["admitted"]:
+        worst = int(np.argmax(modes_cv["relative_difference"]))
+        modes = (f"{lin['modes']['n_modes']} modes of the basis weights not admitted (their executed mean from "
+                 f"{modes_cv['conditionings'][worst]}: MSE {modes_cv['relative_difference'][worst]:+.1%} ± "
+                 f"{modes_cv['standard_error'][worst]:.1%}, cross-validated): linear_modes 1")
+    elif not fallback:
         modes = f"linear_modes {lin['linear_modes']}"
     elif fallback["kept_modes"] and "reason" in fallback:
         modes = f"linear_modes {lin['linear_modes']} ({fallback['reason']})"

@@ -7,7 +7,9 @@
    every phase as via-points: the least-squares fit at the planner's noise;
    :func:`deepprompt_ros.training.basis.cv_basis_hyperparameters` with ``meet`` and ``whole_noise``),
    and the modes of the demos' basis weights in that basis (``linear_modes``,
-   :func:`deepprompt_ros.training.basis.weight_modes`): with K > 1 modes the PPCA is taken within the
+   :func:`deepprompt_ros.training.basis.weight_modes`), where the same cross-validation finds the
+   executed means of a mixture of them no worse than one Gaussian's
+   (:func:`deepprompt_ros.training.basis.cv_modes`): with K > 1 modes the PPCA is taken within the
    modes and the decoder holds the offsets between them (``ModelConfig.decoder_modes``);
 2. :func:`judge_residual` — after training, the MLP residual kept or dropped (``residual_scale`` 0)
    by comparing the model with and without it on the validation demos of the training split (or,
@@ -37,8 +39,8 @@ from deepprompt_ros.model.phase import phase_basis
 from deepprompt_ros.primitive.deep_promp import DeepProMP
 from deepprompt_ros.primitive.latent import PLANNER_VIA_NOISE
 from deepprompt_ros.primitive.linear_context import fit_linear_context
-from deepprompt_ros.training.basis import (CV_VIA_NOISES, basis_weights, cv_basis_hyperparameters, fold_assignment,
-                                          weight_modes)
+from deepprompt_ros.training.basis import (CV_VIA_NOISES, MODE_NOISES, basis_weights, cv_basis_hyperparameters,
+                                          cv_modes, fold_assignment, weight_modes)
 from deepprompt_ros.training.config import TrainConfig
 from deepprompt_ros.training.tensors import fit_normalization, to_tensors
 
@@ -64,7 +66,9 @@ def select_linear_part(train_ds: DemoDataset, cfg: TrainConfig, n_joints: int) -
     cross-validation, seed ``cfg.seed``; :data:`FALLBACK_LINEAR_PART` below 3 demos), the linear part
     initialized as the PPCA and kept fixed (``basis_init`` pca, ``basis_lr_scale`` 0), ``linear_modes``
     K the modes of the training demos' basis weights (normalized units, the chosen basis;
-    :func:`~deepprompt_ros.training.basis.weight_modes`, seed ``cfg.seed``; 1 below 3 demos) and
+    :func:`~deepprompt_ros.training.basis.weight_modes`, seed ``cfg.seed``; 1 below 3 demos) where the
+    same cross-validation admits their executed means (:func:`~deepprompt_ros.training.basis.cv_modes`),
+    else 1, and
     ``latent_dim`` = ``latent_linear`` + :func:`nonlinear_dims`. Returns (that configuration, the record
     of the choice: the values, the cross-validation's result or the reason for the fallback, and the
     modes' criterion)."""
@@ -77,9 +81,14 @@ def select_linear_part(train_ds: DemoDataset, cfg: TrainConfig, n_joints: int) -
         phi = phase_basis(data.x.double(), cv["decoder_basis"], cfg.basis_width,
                           train_ds.phase_type == "rhythmic").numpy()
         modes = weight_modes(basis_weights(phi, data.y.double().numpy()), cfg.seed)
-        choice["linear_modes"] = modes.n_modes
+        mode_record = dict(modes.record)
+        if modes.n_modes > 1:  # the modes' means, cross-validated against one Gaussian's
+            mode_record["cross_validation"] = cv_modes(train_ds, cfg.n_points, cv, modes.n_modes, cfg.basis_width,
+                                                       folds=cfg.cv_folds, seed=cfg.seed)
+        admitted = modes.n_modes > 1 and mode_record["cross_validation"]["admitted"]
+        choice["linear_modes"] = modes.n_modes if admitted else 1
         record = {"method": f"{cv['folds']}-fold cross-validation on the {cv['n_demos']} training demonstrations",
-                  "cross_validation": cv, "modes": modes.record}
+                  "cross_validation": cv, "modes": mode_record}
     else:
         nb = min(FALLBACK_LINEAR_PART["decoder_basis"], max(2, cfg.n_points // 2))
         choice = {**FALLBACK_LINEAR_PART, "decoder_basis": nb, "latent_linear": nb * n_joints, "linear_modes": 1}
@@ -283,10 +292,6 @@ def compare_modes(several: tuple[DeepProMPNet, Normalization], one: tuple[DeepPr
                                                                    for c in range(mse.shape[1])],
                   "mse_modes": mse[0].mean(1).tolist(),
                   "mse_one_mode": mse[1].mean(1).tolist()}
-
-
-#: The candidates of ``ModelConfig.mode_noise`` (:func:`choose_mode_noise`), those >= the chosen via_noise.
-MODE_NOISES = (*CV_VIA_NOISES, 0.3, 1.0)
 
 
 def choose_mode_noise(net: DeepProMPNet, norm: Normalization, joint_names, val_ds: DemoDataset,
