@@ -54,14 +54,15 @@ class TrainConfig:
     auto_select: bool = param(True, "choose the decoder from the training demos (never held-out ones): "
                                     "decoder_basis, latent_linear, basis_cov_reg, basis_cov_reg_units and "
                                     "via_noise by cross-validation of the linear part, linear_modes by the modes "
-                                    "of the demos' basis weights where the same cross-validation finds their "
-                                    "executed means no worse than one Gaussian's, latent_dim = latent_linear + latent_nonlinear "
+                                    "of the demos' basis weights unless the same cross-validation finds their "
+                                    "executed means worse than one Gaussian's (by more than two standard errors "
+                                    "and 2 %), latent_dim = latent_linear + latent_nonlinear "
                                     "(with several modes the first z_nl dimension chooses the mode), the linear part "
                                     "initialized as their PPCA and kept fixed (basis_init pca, "
                                     "basis_lr_scale 0), then the MLP residual kept (residual_scale) or dropped (0) "
                                     "on the validation demos (with linear_modes > 1 the modes' via-point noise and mode_noise are "
                                     "chosen on the validation demos; unless the cross-validation found their "
-                                    "executed means better, the training with linear_modes 1 runs too "
+                                    "executed means better by more than two standard errors and 2 %, the training with linear_modes 1 runs too "
                                     "and the modes are kept only if better there), and "
                                     "the low-dim contexts conditioned through their joint linear Gaussian model "
                                     "of z_lin, or through the encoders alone where they reconstruct the "
@@ -75,8 +76,7 @@ class TrainConfig:
     judge_modes: bool = param(True, "with auto_select and K > 1 modes admitted: true = unless the "
                                     "cross-validation found their executed means better, the training with "
                                     "linear_modes 1 runs too and the modes are kept only if better there; false = "
-                                    "the modes are kept as the demos' basis weights show them (no training with "
-                                    "one mode)")
+                                    "the modes the cross-validation admits are kept (no training with one mode)")
     cv_folds: int = param(5, "with auto_select: folds of the cross-validation (at most one per training "
                              "demonstration)", min=2)
     residual_folds: int = param(0, "with auto_select: 0 = judge the MLP residual on the validation demos; K >= 2 "

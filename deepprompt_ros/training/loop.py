@@ -288,7 +288,7 @@ def selection_line(selection: dict) -> str:
     fallback = selection.get("modes_fallback")
     modes_cv = lin.get("modes", {}).get("cross_validation")
     if modes_cv and not modes_cv["admitted"]:
-        worst = int(np.argmax(modes_cv["relative_difference"]))
+        worst = max((i for i, w in enumerate(modes_cv["worse"]) if w), key=lambda i: modes_cv["relative_difference"][i])
         modes = (f"{lin['modes']['n_modes']} modes of the basis weights not admitted (their executed mean from "
                  f"{modes_cv['conditionings'][worst]}: MSE {modes_cv['relative_difference'][worst]:+.1%} ± "
                  f"{modes_cv['standard_error'][worst]:.1%}, cross-validated): linear_modes 1")
