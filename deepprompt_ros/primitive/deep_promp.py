@@ -32,7 +32,7 @@ from deepprompt_ros.common.joints import joint_list_text
 from deepprompt_ros.model.aggregation import bayesian_aggregate
 from deepprompt_ros.model.checkpoint import Checkpoint, Normalization, load_checkpoint
 from deepprompt_ros.model.network import DeepProMPNet
-from deepprompt_ros.primitive.blending import blend_gaussians
+from deepprompt_ros.primitive.blending import blend_gaussians, blend_mode_weights
 from deepprompt_ros.primitive.inputs import check_images, check_phases, check_weights
 from deepprompt_ros.primitive.latent import (PLANNER_CHANGE_BOUND, PLANNER_TOLERANCE, PLANNER_VIA_NOISE,
                                             LatentGaussian)
@@ -682,7 +682,7 @@ class DeepProMP:
         mean, var = self.blend_latent(a, b, w)
         z = mean if eps is None else mean + np.asarray(eps)[None, :] * np.sqrt(var)
         wa, wb = self.mode_weights(a), self.mode_weights(b)
-        modes = None if wa is None else w[:, None] * wa + (1.0 - w[:, None]) * wb  # ω(x) from a's offset to b's
+        modes = None if wa is None else blend_mode_weights(w, wa, wb)
         return self.decode_per_phase(z, x, modes)
 
     # ------------------------------------------------------------------ refinement

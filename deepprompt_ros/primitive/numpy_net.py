@@ -205,27 +205,31 @@ class NumpyNet:
     def decode(self, z, x) -> np.ndarray:
         """μ_y(z, x) in joint units: z (k,) → (T, d), z (n, k) → (n, T, d); x (T,)."""
         z = np.asarray(z, dtype=np.float64)
-        if self._no_mlp:  # the linear part and the joints' mean alone
-            out = self._linear_part(z, x)
-            out += self._b3
-            if self._modes is not None:
-                out += self._mode_part(z[..., self.k_lin:], x)
-            return out
-        out = self.decode_nonlinear(z[..., self.k_lin:], x)
-        if self.cfg.decoder_basis:
-            out += self._linear_part(z, x)
+        out = self._decode_shared(z, x)
+        if self._modes is not None:
+            out += self._mode_part(z[..., self.k_lin:], x)
         return out
 
     def decode_weighted(self, z: np.ndarray, x, mode_weights: np.ndarray | None) -> np.ndarray:
         """μ_y(z, x) with the modes' offsets weighted by ``mode_weights`` (K,) instead of the one z's
         z_nl chooses (:attr:`LatentGaussian.mode_weights`), joint units: z (k,) → (T, d). None, or a
         decoder of one mode: :meth:`decode`."""
-        out = self.decode(z, x)
         if mode_weights is None or self._modes is None:
+            return self.decode(z, x)
+        out = self._decode_shared(np.asarray(z, dtype=np.float64), x)
+        out += np.einsum("k,ktd->td", np.asarray(mode_weights, dtype=np.float64), self._per_mode(x))
+        return out
+
+    def _decode_shared(self, z: np.ndarray, x) -> np.ndarray:
+        """μ_y(z, x) without the modes' offsets (the part every mode shares), joint units: z (k,) → (T, d),
+        (n, k) → (n, T, d); x (T,)."""
+        if self._no_mlp:  # the linear part and the joints' mean alone
+            out = self._linear_part(z, x)
+            out += self._b3
             return out
-        per_mode = self._per_mode(x)
-        out -= per_mode[self.mode_of(np.asarray(z, dtype=np.float64)[self.k_lin:])]
-        out += np.einsum("k,ktd->td", np.asarray(mode_weights, dtype=np.float64), per_mode)
+        out = self._mlp_part(z[..., self.k_lin:], x)
+        if self.cfg.decoder_basis:
+            out += self._linear_part(z, x)
         return out
 
     def decode_nonlinear(self, z_nl: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -238,16 +242,21 @@ class NumpyNet:
             out = np.empty((*z_nl.shape[:-1], np.shape(x)[0], self._b3.shape[0]))
             out[...] = self._b3
         else:
-            pre_x = self._layer1_phase(x)  # (T, h)
-            if z_nl.ndim == 1:
-                h = pre_x + z_nl @ self._W1zT
-            else:
-                h = pre_x[None] + (z_nl @ self._W1zT)[:, None, :]
-            np.maximum(h, 0.0, out=h)
-            out = self._decode_hidden(h)
+            out = self._mlp_part(z_nl, x)
         if self._modes is not None:
             out += self._mode_part(z_nl, x)
         return out
+
+    def _mlp_part(self, z_nl: np.ndarray, x) -> np.ndarray:
+        """s·MLP(z_nl, x) plus the joints' mean (the output layer's bias), joint units: z_nl (k − k_l,) →
+        (T, d), (n, k − k_l) → (n, T, d); x (T,)."""
+        pre_x = self._layer1_phase(x)  # (T, h)
+        if z_nl.ndim == 1:
+            h = pre_x + z_nl @ self._W1zT
+        else:
+            h = pre_x[None] + (z_nl @ self._W1zT)[:, None, :]
+        np.maximum(h, 0.0, out=h)
+        return self._decode_hidden(h)
 
     def linear_design(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The linear part at phases x (n,) in joint units: Φ(x) b (n, d) and its matrix in z_lin,

@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Callable, Union
 
 import numpy as np
 
-from deepprompt_ros.primitive.blending import blend_gaussians
+from deepprompt_ros.primitive.blending import blend_gaussians, blend_mode_weights
 
 if TYPE_CHECKING:  # torch-free import (the server validates its parameters before loading torch)
     from deepprompt_ros.primitive.latent import LatentGaussian
@@ -190,12 +190,11 @@ class BlendedLatent:
         return blend_gaussians(self.schedule(x), ma, va, mb, vb)
 
     def mode_weights_at(self, x, mode_weights) -> np.ndarray:
-        """The weights of the decoder's modes at phases x (T,), (T, K): ω(x) times a's plus 1 − ω(x) times
-        b's, so a blend between two modes moves from one offset to the other as ω does (the modes' gate on
-        the blended latent would jump where z_nl crosses a threshold)."""
+        """The weights of the decoder's modes at phases x (T,), (T, K): a's and b's blended by ω(x)
+        (:func:`deepprompt_ros.primitive.blending.blend_mode_weights`)."""
         x = np.asarray(x, dtype=np.float64)
-        w = self.schedule(x)[:, None]
-        return w * self.a.mode_weights_at(x, mode_weights) + (1.0 - w) * self.b.mode_weights_at(x, mode_weights)
+        return blend_mode_weights(self.schedule(x), self.a.mode_weights_at(x, mode_weights),
+                                  self.b.mode_weights_at(x, mode_weights))
 
 
 StoredDistribution = Union[ConditionedLatent, BlendedLatent]
