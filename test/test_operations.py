@@ -6,6 +6,7 @@ import pytest
 
 from deepprompt_ros.data.builtin import wam_shake
 from deepprompt_ros.data.synthetic import bimodal_sine
+from deepprompt_ros.primitive.blending import blend_mode_weights
 from deepprompt_ros.primitive.deep_promp import DeepProMP
 from deepprompt_ros.primitive.latent import LatentGaussian
 from deepprompt_ros.baselines.promp import ProMP
@@ -253,6 +254,20 @@ def test_blending_starts_as_first_ends_as_second_and_is_continuous(sine):
     assert step < 6 * step_a
     with pytest.raises(ValueError, match=r"in \[0, 1\]"):
         sine.blend(a, b, lambda s: 2 * s, x)
+
+
+def test_blended_mode_weights_move_from_a_to_b_with_omega(sine):
+    a = sine.condition([0.25], [[1.0]])
+    b = sine.condition([0.25], [[-1.0]])
+    wa, wb = sine.mode_weights(a), sine.mode_weights(b)
+    assert np.abs(wa - wb).max() > 0.5  # the two via-points choose different modes
+    w = blend_mode_weights(np.array([1.0, 0.25, 0.0]), wa, wb)
+    np.testing.assert_allclose(w, [wa, 0.25 * wa + 0.75 * wb, wb], rtol=1e-15)
+    # the blend at ω = 0.25 decodes its blended latent with those weights of the modes' offsets
+    x = np.array([0.5])
+    mean, _ = sine.blend_latent(a, b, np.array([0.25]))
+    np.testing.assert_allclose(sine.blend(a, b, np.array([0.25]), x), sine.decode_per_phase(mean, x, w[1:2]),
+                               rtol=1e-12)
 
 
 # ------------------------------------------------------------------ temporal modulation
