@@ -73,6 +73,29 @@ def test_zero_crossings_give_both_modes_not_between_and_promp_falls_between(sine
     assert abs(cond.mean_trajectory(X)[25, 0]) < 0.2  # ProMP's mean sits between the modes
 
 
+def test_an_aggregation_alone_weighs_the_modes_as_its_draws_do(sine):
+    """Without via-points or the contexts' linear model (the prior; a context through its encoder alone) the
+    executed mean of a decoder of modes is the mean over the latent's draws: each mode's offset weighted by the
+    probability of its interval of z_nl's first coordinate — not the one mode that coordinate's mean is in."""
+    x = np.linspace(0, 1, 9)
+    shares = np.diff([0.0, *sine.net.mode_cumulative_shares.tolist()])
+    assert shares.size == 2
+    prior = sine.prior()
+    np.testing.assert_allclose(prior.mode_weights, shares, rtol=1e-6)
+    per_mode = [sine.decode_per_phase(np.zeros((x.size, sine.latent_dim)), x, np.tile(np.eye(2)[k], (x.size, 1)))
+                for k in range(2)]
+    np.testing.assert_allclose(sine.mean_trajectory(prior, x), shares[0] * per_mode[0] + shares[1] * per_mode[1],
+                               atol=1e-12)
+    encoders = DeepProMP(sine.net, sine.norm, sine.joint_names)  # no linear model of the context: its encoder
+    lat = encoders.condition(contexts={"mode": [1.0]})
+    assert lat.linear is None and 0.05 < lat.mode_weights.min()
+    draws = encoders.sample(lat, x, 4000, 0)
+    se = draws.std(0) / np.sqrt(draws.shape[0])
+    assert np.all(np.abs(encoders.mean_trajectory(lat, x) - draws.mean(0)) <= 4 * se)
+    # the mode the mean's coordinate chooses alone is far from where the draws fall
+    assert np.abs(encoders.decode(lat.mean, x) - draws.mean(0)).max() > 20 * se.max()
+
+
 def test_latent_variance_shrinks_as_via_points_are_added(sine):
     demo = bimodal_sine(1, seed=7).demos[0]
     q = demo.resampled(101)

@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import pathlib
+import statistics
 import time
 from typing import Callable, Mapping, Sequence
 
@@ -252,8 +253,28 @@ class DeepProMP:
 
     # ------------------------------------------------------------------ conditioning
     def prior(self) -> LatentGaussian:
-        """p0(z) = N(0, I)."""
-        return LatentGaussian(np.zeros(self.latent_dim), np.ones(self.latent_dim))
+        """p0(z) = N(0, I); with several modes of the decoder and no MLP residual, the modes weighted by their
+        shares (:meth:`_aggregation_latent`)."""
+        return self._aggregation_latent(np.zeros(self.latent_dim), np.ones(self.latent_dim))
+
+    def _aggregation_latent(self, mean: np.ndarray, var: np.ndarray, context_mean: np.ndarray | None = None,
+                            context_var: np.ndarray | None = None) -> LatentGaussian:
+        """The latent of a Bayesian aggregation that no via-point and no linear context model conditions.
+
+        With several modes of the decoder (``decoder_modes``) and no MLP residual the mode is chosen by z_nl's
+        first coordinate through a step (:meth:`mode_of`): the training decodes latents drawn from the
+        aggregation, each with the mode its draw chooses, and the step passes no gradient to that coordinate's
+        encoding. The executed mean is therefore the mean over those draws: each mode's offset weighted by the
+        probability of its interval under the aggregation's N(mean, var) of that coordinate (``mode_weights``;
+        the shares for the prior), which is where the samples fall too — not the one mode the coordinate's mean
+        falls in."""
+        if not self._np.has_modes or self._np.mlp_active:
+            return LatentGaussian(mean, var, context_mean=context_mean, context_var=context_var)
+        k_l = self.cfg.latent_linear
+        gate = statistics.NormalDist(float(mean[k_l]), math.sqrt(float(var[k_l])))
+        cdf = np.array([0.0, *(gate.cdf(float(t)) for t in self._np.mode_thresholds), 1.0])
+        return LatentGaussian(mean, var, context_mean=context_mean, context_var=context_var,
+                              mode_weights=np.diff(cdf))
 
     def condition(self, via_x=None, via_y=None, via_weights=None, via_mask=None,
                   contexts: Mapping[str, np.ndarray] | None = None,
@@ -515,7 +536,7 @@ class DeepProMP:
             return lat.with_context(np.concatenate([ctx.mean[:k_l], q_c.mean[k_l:]]),
                                     np.concatenate([ctx.var[:k_l], q_c.var[k_l:]]))
         # no observed joint of a via-point of weight > 0: the aggregation is the distribution
-        return LatentGaussian(q_all.mean, q_all.var, context_mean=q_c.mean, context_var=q_c.var)
+        return self._aggregation_latent(q_all.mean, q_all.var, q_c.mean, q_c.var)
 
     @staticmethod
     def _observed(x, y, w, mask) -> np.ndarray | None:

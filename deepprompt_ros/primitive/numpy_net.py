@@ -159,6 +159,11 @@ class NumpyNet:
         """Whether the decoder has several modes chosen by z_nl (``decoder_modes``)."""
         return self._modes is not None
 
+    @property
+    def mode_thresholds(self) -> np.ndarray:
+        """The K − 1 values of z_nl's first coordinate between the modes' intervals (``decoder_modes``)."""
+        return self._mode_thresholds
+
     def mode_of(self, z_nl: np.ndarray) -> np.ndarray | int:
         """The mode each z_nl (..., k − k_l) chooses (``decoder_modes``; :func:`mode_of_latent`)."""
         return np.searchsorted(self._mode_thresholds, np.asarray(z_nl)[..., 0], side="right")
