@@ -474,6 +474,32 @@ def test_a_context_modelled_per_mode_chooses_the_mode():
         np.testing.assert_array_equal(prim.mean_trajectory(again, x), prim.mean_trajectory(res.latent, x))
 
 
+def test_the_encodings_of_z_lin_are_moved_to_each_mode():
+    """A context encoder that says z_lin = μ with variance ~1e-5: it describes the trajectory b + Σ_k π_k m_k + A μ
+    (the training decodes each draw with the mode it chooses). A via-point on that trajectory where the modes
+    differ (x = 0.5) leaves it as it is: each mode's candidate has the prior m − (1 − σ²) u_k, not μ beside its
+    own offset, which would put the executed mean on the nearer mode's shape."""
+    prim, x = decoder_modes_model(shares=(0.3, 1.0), context_dims=(("obj", 1),))
+    mu = 0.3 * np.random.default_rng(7).standard_normal(16)
+    with torch.no_grad():  # every encoding (the context's and the via-points'): z_lin = μ, variance softplus(−12)
+        prim.net.head.weight[:16] = 0.0
+        prim.net.head.bias[:16] = torch.as_tensor(mu, dtype=torch.float32)
+        prim.net.head.weight[17:33] = 0.0
+        prim.net.head.bias[17:33] = -12.0
+    norm = Normalization(np.zeros(2), np.ones(2), {"obj": np.zeros(1)}, {"obj": np.ones(1)})
+    prim = DeepProMP(prim.net, norm, ["a", "b"])
+    assert prim.encode_context("obj", np.zeros((1, 1)))[1][0, :16].max() < 2e-4
+    grid = np.linspace(0.0, 1.0, 21)
+    said = prim.decode_per_phase(np.tile(np.r_[mu, 0.0], (21, 1)).astype(np.float32).astype(np.float64), grid,
+                                 np.tile([0.3, 0.7], (21, 1)))
+    per_mode = [prim.decode_per_phase(np.zeros((21, 17)), grid, np.tile(np.eye(2)[k], (21, 1))) for k in range(2)]
+    assert np.abs(per_mode[1] - per_mode[0]).max() > 1.9  # the modes' offsets differ by up to 2
+    lat = prim.condition(grid[10:11], said[10:11], contexts={"obj": np.zeros((1, 1))})
+    assert np.abs(prim.mean_trajectory(lat, grid) - said).max() < 1e-3
+    s = prim.sample(lat, grid, 200, rng=8)
+    assert np.abs(s.mean(0) - said).max() < 1e-3
+
+
 # ------------------------------------------------------------------------------------------------
 # refinement
 # ------------------------------------------------------------------------------------------------

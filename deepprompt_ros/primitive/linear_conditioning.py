@@ -313,6 +313,14 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
             candidates_nl = mode_candidates(net, prior_mean, prior_var, n_candidates, seed)
         else:
             candidates_nl = _candidates(all_mean[k_l:], all_var[k_l:], n_candidates, seed)
+    if modes and np.any(context_var[:k_l] < 1.0):
+        # the encodings of the contexts and images give z_lin relative to the modes' mean over their shares
+        # (the training decodes each draw of the aggregation with the mode it chooses, and the encoders do not
+        # learn the mode); for the candidate of mode k, whose decoder adds Φ m_k, the prior of z_lin is theirs
+        # moved by u_k, that mode's offset from the mean in z_lin (:meth:`NumpyNet.mode_latent_offsets`), as far
+        # as they inform it: m − (1 − σ²) u_k per coordinate, the aggregation of the prior N(0, I) of the mode's
+        # own coordinates with the moved encodings
+        m = m - (1.0 - context_var[:k_l]) * net.mode_latent_offsets()[net.mode_of(candidates_nl)]  # (C, k_l)
     if x.shape[0] == 0:  # no via-point: the context rows alone
         h, g = np.zeros((0, k_l)), np.zeros((0, k_l))
         r, d = np.zeros((candidates_nl.shape[0], 0)), np.zeros((candidates_nl.shape[0], 0))
@@ -324,7 +332,7 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
         h = lin_a.reshape(-1, k_l)  # (M, k_l)
         g = (lin_a * (s / sigma[..., None])).reshape(h.shape)  # whitened design
         r = np.subtract(y, off, out=off)  # (C, n, d)
-        d = r - lin_a @ m
+        d = r - (lin_a @ m if m.ndim == 1 else np.einsum("ndk,ck->cnd", lin_a, m))
         d /= sigma  # whitened residuals of the candidates
         r, d = r.reshape(r.shape[0], -1), d.reshape(r.shape[0], -1)  # (C, M)
     else:
@@ -337,14 +345,14 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
         sigma = (noise * net.y_std / np.sqrt(w_rows)[:, None])[sel]
         r = (y[rows][None] - off)[:, sel]
         g = h * (s / sigma[:, None])  # whitened design
-        d = r - h @ m
+        d = r - m @ h.T
         d /= sigma  # whitened residuals of the candidates
     if context_rows is not None and context_rows[0].shape[0]:
         g_c, e_c = context_rows
         g = np.concatenate([g, g_c * s], 0)
         if e_c.ndim == 2:  # one row per mode of the decoder: each candidate's, by the mode its z_nl chooses
             e_c = e_c[net.mode_of(candidates_nl)]
-        d = np.concatenate([d, np.broadcast_to(e_c - g_c @ m, (d.shape[0], g_c.shape[0]))], 1)
+        d = np.concatenate([d, np.broadcast_to(e_c - m @ g_c.T, (d.shape[0], g_c.shape[0]))], 1)
     single = candidates_nl.shape[0] == 1
     n_via = h.shape[0]
     smooth = smooth_noise is not None and smooth_noise > noise and 0 < n_via <= k_l

@@ -121,6 +121,20 @@ class NumpyNet:
             self._metric_inverse = mi
         return mi
 
+    def mode_latent_offsets(self) -> np.ndarray:
+        """(K, k_l) u_k − Σ_j π_j u_j: each mode's offset Φ m_k relative to the modes' mean over their shares,
+        in the coordinates of z_lin. u_k is the Δ that minimizes ‖Φ(x_t)(A Δ − m_k)‖² over the
+        :data:`METRIC_PHASES` phases (joint units), M⁻¹ (Φ A)ᵀ Φ m_k (:meth:`trajectory_metric_inverse`).
+        ``decoder_modes`` only; computed once."""
+        u = self.__dict__.get("_mode_latent_offsets")
+        if u is None:
+            per_mode = self._per_mode(np.linspace(0.0, 1.0, METRIC_PHASES)).reshape(self._modes.shape[0], -1)
+            u = per_mode @ self.trajectory_rows() @ self.trajectory_metric_inverse()
+            u = u - np.exp(self.mode_log_shares) @ u
+            u.flags.writeable = False
+            self._mode_latent_offsets = u
+        return u
+
     def metric_design(self, x: np.ndarray) -> np.ndarray:
         """Φ(x) A M⁻¹ at phases x (n,), shape (n, d, k_l): :meth:`linear_design`'s matrix times
         :meth:`trajectory_metric_inverse`, from Φ(x) and A M⁻¹ (computed once)."""
