@@ -22,7 +22,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import pathlib
-import statistics
 import time
 from typing import Callable, Mapping, Sequence
 
@@ -271,10 +270,8 @@ class DeepProMP:
         if not self._np.has_modes or self._np.mlp_active:
             return LatentGaussian(mean, var, context_mean=context_mean, context_var=context_var)
         k_l = self.cfg.latent_linear
-        gate = statistics.NormalDist(float(mean[k_l]), math.sqrt(float(var[k_l])))
-        cdf = np.array([0.0, *(gate.cdf(float(t)) for t in self._np.mode_thresholds), 1.0])
         return LatentGaussian(mean, var, context_mean=context_mean, context_var=context_var,
-                              mode_weights=np.diff(cdf))
+                              mode_weights=self._np.mode_probabilities(mean[k_l], var[k_l]))
 
     def condition(self, via_x=None, via_y=None, via_weights=None, via_mask=None,
                   contexts: Mapping[str, np.ndarray] | None = None,

@@ -313,14 +313,16 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
             candidates_nl = mode_candidates(net, prior_mean, prior_var, n_candidates, seed)
         else:
             candidates_nl = _candidates(all_mean[k_l:], all_var[k_l:], n_candidates, seed)
-    if modes and np.any(context_var[:k_l] < 1.0):
-        # the encodings of the contexts and images give z_lin relative to the modes' mean over their shares
-        # (the training decodes each draw of the aggregation with the mode it chooses, and the encoders do not
-        # learn the mode); for the candidate of mode k, whose decoder adds Φ m_k, the prior of z_lin is theirs
-        # moved by u_k, that mode's offset from the mean in z_lin (:meth:`NumpyNet.mode_latent_offsets`), as far
-        # as they inform it: m − (1 − σ²) u_k per coordinate, the aggregation of the prior N(0, I) of the mode's
-        # own coordinates with the moved encodings
-        m = m - (1.0 - context_var[:k_l]) * net.mode_latent_offsets()[net.mode_of(candidates_nl)]  # (C, k_l)
+    if modes and not net.mlp_active and np.any(context_var[:k_l] < 1.0):
+        # the decoder reads z_nl through the mode alone, whose step passes the encoders no gradient: the training
+        # decodes each draw of the aggregation with the mode the draw chooses, so the encodings of the contexts
+        # and images give z_lin relative to the modes' mean over those draws. For the candidate of mode k, whose
+        # decoder adds Φ m_k, the prior of z_lin is theirs moved by that mode's offset from the mean in z_lin
+        # (u_k − ū, :meth:`NumpyNet.mode_latent_offsets`) as far as they inform it: m − (1 − σ²)(u_k − ū) per
+        # coordinate, the aggregation of the prior N(0, I) of the mode's own coordinates with the moved encodings
+        u = net.mode_latent_offsets()
+        u = u - net.mode_probabilities(context_mean[k_l], context_var[k_l]) @ u
+        m = m - (1.0 - context_var[:k_l]) * u[net.mode_of(candidates_nl)]  # (C, k_l)
     if x.shape[0] == 0:  # no via-point: the context rows alone
         h, g = np.zeros((0, k_l)), np.zeros((0, k_l))
         r, d = np.zeros((candidates_nl.shape[0], 0)), np.zeros((candidates_nl.shape[0], 0))

@@ -13,6 +13,7 @@ T = phases, d = joints, k = latent dimension, h = hidden width, n_b = basis func
 """
 from __future__ import annotations
 
+import math
 import statistics
 from typing import Callable
 
@@ -122,18 +123,22 @@ class NumpyNet:
         return mi
 
     def mode_latent_offsets(self) -> np.ndarray:
-        """(K, k_l) u_k − Σ_j π_j u_j: each mode's offset Φ m_k relative to the modes' mean over their shares,
-        in the coordinates of z_lin. u_k is the Δ that minimizes ‖Φ(x_t)(A Δ − m_k)‖² over the
-        :data:`METRIC_PHASES` phases (joint units), M⁻¹ (Φ A)ᵀ Φ m_k (:meth:`trajectory_metric_inverse`).
-        ``decoder_modes`` only; computed once."""
+        """(K, k_l) u_k: each mode's offset Φ m_k in the coordinates of z_lin, the Δ that minimizes
+        ‖Φ(x_t)(A Δ − m_k)‖² over the :data:`METRIC_PHASES` phases (joint units), M⁻¹ (Φ A)ᵀ Φ m_k
+        (:meth:`trajectory_metric_inverse`). ``decoder_modes`` only; computed once."""
         u = self.__dict__.get("_mode_latent_offsets")
         if u is None:
             per_mode = self._per_mode(np.linspace(0.0, 1.0, METRIC_PHASES)).reshape(self._modes.shape[0], -1)
             u = per_mode @ self.trajectory_rows() @ self.trajectory_metric_inverse()
-            u = u - np.exp(self.mode_log_shares) @ u
             u.flags.writeable = False
             self._mode_latent_offsets = u
         return u
+
+    def mode_probabilities(self, mean: float, var: float) -> np.ndarray:
+        """(K,) the probability of each mode's interval of z_nl's first coordinate under N(mean, var)
+        (``decoder_modes``; the shares under N(0, 1))."""
+        gate = statistics.NormalDist(float(mean), math.sqrt(float(var)))
+        return np.diff([0.0, *(gate.cdf(float(t)) for t in self._mode_thresholds), 1.0])
 
     def metric_design(self, x: np.ndarray) -> np.ndarray:
         """Φ(x) A M⁻¹ at phases x (n,), shape (n, d, k_l): :meth:`linear_design`'s matrix times
@@ -172,11 +177,6 @@ class NumpyNet:
     def has_modes(self) -> bool:
         """Whether the decoder has several modes chosen by z_nl (``decoder_modes``)."""
         return self._modes is not None
-
-    @property
-    def mode_thresholds(self) -> np.ndarray:
-        """The K − 1 values of z_nl's first coordinate between the modes' intervals (``decoder_modes``)."""
-        return self._mode_thresholds
 
     def mode_of(self, z_nl: np.ndarray) -> np.ndarray | int:
         """The mode each z_nl (..., k − k_l) chooses (``decoder_modes``; :func:`mode_of_latent`)."""
