@@ -475,7 +475,7 @@ def test_a_context_modelled_per_mode_chooses_the_mode():
 
 
 def test_the_encodings_of_z_lin_are_moved_to_each_mode():
-    """A context encoder that says z_lin = μ with variance ~1e-5: it describes the trajectory b + Σ_k π_k m_k + A μ
+    """A context encoder that says z_lin = μ with variance ~1e-4: it describes the trajectory b + Σ_k π_k m_k + A μ
     (the training decodes each draw with the mode it chooses). A via-point on that trajectory where the modes
     differ (x = 0.5) leaves it as it is: each mode's candidate has the prior m − (1 − σ²) u_k, not μ beside its
     own offset, which would put the executed mean on the nearer mode's shape."""
@@ -498,6 +498,47 @@ def test_the_encodings_of_z_lin_are_moved_to_each_mode():
     assert np.abs(prim.mean_trajectory(lat, grid) - said).max() < 1e-3
     s = prim.sample(lat, grid, 200, rng=8)
     assert np.abs(s.mean(0) - said).max() < 1e-3
+
+
+def test_a_refinement_takes_the_linear_contexts_posterior_as_it_is(monkeypatch):
+    """The contexts' linear model decides z_lin (its encodings unused): no move to the modes in the conditioning,
+    and none when the refinement conditions again from the recorded prior, the linear model's posterior."""
+    from deepprompt_ros.primitive.linear_context import fit_linear_context
+    from deepprompt_ros.primitive.numpy_net import NumpyNet
+    prim, x = decoder_modes_model(shares=(0.5, 1.0), context_dims=(("side", 1),))
+    rng = np.random.default_rng(5)
+    labels = np.arange(40) % 2
+    model = fit_linear_context({"side": (2.0 * labels - 1.0)[:, None] + 0.3 * rng.standard_normal((40, 1))},
+                               rng.standard_normal((40, 16)), labels, 2)
+    norm = Normalization(np.zeros(2), np.ones(2), {"side": np.zeros(1)}, {"side": np.ones(1)})
+    prim = DeepProMP(prim.net, norm, ["a", "b"], metadata={"selection": {"context": {"linear": model.to_json()}}})
+    xv, yv = np.array([0.2, 0.7]), np.array([[0.4, 0.2], [0.9, 0.5]])
+
+    def refined():
+        lat = prim.condition(xv, yv, contexts={"side": np.array([[0.5]])}, via_noise=1.0)
+        assert lat.context_var[:16].max() < 1.0 and not lat.linear.move_prior
+        res = prim.refine_linear(lat, xv, yv, tol=1e-6)
+        assert res.max_error <= 1e-6
+        return prim.mean_trajectory(res.latent, x)
+
+    with_offsets = refined()
+    assert np.abs(prim._np.mode_latent_offsets()).max() > 0.1
+    monkeypatch.setattr(NumpyNet, "mode_latent_offsets", lambda self: np.zeros((2, 16)))
+    np.testing.assert_array_equal(refined(), with_offsets)
+
+
+def test_the_modes_probabilities_of_a_degenerate_or_overflowed_aggregation():
+    prim, _ = decoder_modes_model(shares=(0.3, 1.0), encoder_z_nl=(3.0, -5.0), context_dims=(("obj", 1),))
+    net = prim._np
+    np.testing.assert_array_equal(net.mode_probabilities(3.0, 0.0), [0.0, 1.0])
+    np.testing.assert_array_equal(net.mode_probabilities(-3.0, 0.0), [1.0, 0.0])
+    np.testing.assert_allclose(net.mode_probabilities(0.0, 1.0), [0.3, 0.7], rtol=1e-6)
+    assert np.isnan(net.mode_probabilities(np.nan, 1.0)).all() and np.isnan(net.mode_probabilities(0.0, np.inf)).all()
+    norm = Normalization(np.zeros(2), np.ones(2), {"obj": np.zeros(1)}, {"obj": np.ones(1)})
+    encoders = DeepProMP(prim.net, norm, ["a", "b"])
+    for via in ({}, {"via_x": np.array([0.5]), "via_y": np.zeros((1, 2))}):
+        with pytest.raises(ValueError, match="NaN or inf"):
+            encoders.condition(**via, contexts={"obj": np.zeros((1, 1))}, context_weights={"obj": [1e308]})
 
 
 # ------------------------------------------------------------------------------------------------

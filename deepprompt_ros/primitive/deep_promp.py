@@ -530,8 +530,11 @@ class DeepProMP:
                 lat = condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, *via[:3], observed, noise,
                                       n_candidates, context_rows=context_rows, smooth_noise=smooth,
                                       weight_noise=self.mode_noise)
-            return lat.with_context(np.concatenate([ctx.mean[:k_l], q_c.mean[k_l:]]),
-                                    np.concatenate([ctx.var[:k_l], q_c.var[k_l:]]))
+            # (the recorded prior of z_lin is the linear model's posterior: a re-conditioning takes it as it is)
+            block = lat.linear if not lat.linear.move_prior else dataclasses.replace(lat.linear, move_prior=False)
+            return LatentGaussian(lat.mean, lat._var, block,
+                                  np.concatenate([ctx.mean[:k_l], q_c.mean[k_l:]]),
+                                  np.concatenate([ctx.var[:k_l], q_c.var[k_l:]]), lat.mode_weights)
         # no observed joint of a via-point of weight > 0: the aggregation is the distribution
         return self._aggregation_latent(q_all.mean, q_all.var, q_c.mean, q_c.var)
 

@@ -80,6 +80,11 @@ class LinearBlock:
     weight_noise : float or None
         The via-point noise the candidates' weights were computed at when it is not ``noise``
         (``ModelConfig.mode_noise``); a re-conditioning at a smaller noise keeps it.
+    move_prior : bool
+        Whether the recorded prior of z_lin (the latent's ``context_mean``, ``context_var``) is the encodings'
+        aggregation that a re-conditioning moves to each mode, as this one did
+        (:func:`~deepprompt_ros.primitive.linear_conditioning.condition_split`); False where no move was made or
+        the recorded prior is the contexts' linear model's posterior.
     """
 
     scale: np.ndarray
@@ -92,6 +97,7 @@ class LinearBlock:
     via_error: float
     nl_var: np.ndarray
     weight_noise: float | None = None
+    move_prior: bool = False
 
     @property
     def k_lin(self) -> int:

@@ -16,7 +16,8 @@ N(r; H m, H Σ Hᵀ + R) (up to the factor every candidate shares), times q_c(z_
 importance weights of the posterior under the prior q_c of the contexts and images, the proposal
 q_all. With several modes of the decoder (``decoder_modes``) and no MLP residual the candidates are one
 per mode, weighted by the mode's share times the exact likelihood: the exact mixture posterior, whose
-mean trajectory is what the robot executes. See :meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.condition`.
+mean trajectory is what the robot executes; the prior of z_lin the contexts' and images' encodings give is
+moved to each mode's coordinates (they do not know the mode). See :meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.condition`.
 
 Numerics (float64): everything is whitened (rows divided by their noise, columns times the prior
 std), then factored by Cholesky — of I + G Gᵀ (M × M) when there are no more rows M than k_l, of the
@@ -245,14 +246,15 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
                     candidates_nl: np.ndarray | None = None,
                     context_rows: tuple[np.ndarray, np.ndarray] | None = None,
                     smooth_noise: float | None = None, weight_noise: float | None = None,
-                    fixed_weights: np.ndarray | None = None) -> LatentGaussian:
+                    fixed_weights: np.ndarray | None = None, move_prior: bool = True) -> LatentGaussian:
     """q(z) of a split latent: z_lin exactly conditioned on the via-points for each z_nl candidate.
 
     Parameters
     ----------
     net : NumpyNet of a model with ``latent_linear`` k_l > 0
     context_mean, context_var : array, shape (k,)
-        q_c(z), the aggregation of contexts and images only; its z_lin block is the prior of z_lin.
+        q_c(z), the aggregation of contexts and images only; its z_lin block is the prior of z_lin (with
+        several modes and ``move_prior``, moved to each candidate's mode).
     all_mean, all_var : array, shape (k,)
         The aggregation of everything (via-points included); its z_nl block proposes the candidates (with
         ``decoder_modes`` the prior does: :func:`mode_candidates`).
@@ -290,6 +292,10 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
         With several modes and no MLP residual: the candidates' weights to keep instead of computing them
         (:func:`refine_split` conditions again on the via-points alone, and the evidence for the modes stays
         that of the first conditioning, contexts included).
+    move_prior : bool
+        With several modes and no MLP residual: whether ``context_mean``, ``context_var`` are the encodings'
+        aggregation, whose z_lin is moved to each candidate's mode (False: a prior of z_lin taken as it is,
+        such as the contexts' linear model's posterior that :func:`refine_split` may condition from).
 
     Returns
     -------
@@ -313,7 +319,8 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
             candidates_nl = mode_candidates(net, prior_mean, prior_var, n_candidates, seed)
         else:
             candidates_nl = _candidates(all_mean[k_l:], all_var[k_l:], n_candidates, seed)
-    if modes and not net.mlp_active and np.any(context_var[:k_l] < 1.0):
+    moved = move_prior and modes and not net.mlp_active and bool(np.any(context_var[:k_l] < 1.0))
+    if moved:
         # the decoder reads z_nl through the mode alone, whose step passes the encoders no gradient: the training
         # decodes each draw of the aggregation with the mode the draw chooses, so the encodings of the contexts
         # and images give z_lin relative to the modes' mean over those draws. For the candidate of mode k, whose
@@ -451,7 +458,8 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
         nl_var[0] = MODE_GATE_VAR
     block = LinearBlock(scale=s, candidates=cands, weights=weights, chol=chol,
                         design=g if form == "observation" else None, form=form, noise=float(noise),
-                        via_error=via_error, nl_var=nl_var, weight_noise=weight_noise if modes else None)
+                        via_error=via_error, nl_var=nl_var, weight_noise=weight_noise if modes else None,
+                        move_prior=moved)
     # (the variance: from the block when it is read)
     return LatentGaussian(mean, linear=block, context_mean=context_mean, context_var=context_var,
                           mode_weights=mode_weights)
@@ -573,7 +581,8 @@ def refine_split(net: "NumpyNet", latent: LatentGaussian, x: np.ndarray, y: np.n
                 lat = condition_split(net, latent.context_mean, latent.context_var, latent.mean, all_var, x, y,
                                       None, mask, noise, candidates_nl=cands,
                                       weight_noise=latent.linear.weight_noise or latent.linear.noise,
-                                      fixed_weights=None if latent.mode_weights is None else latent.linear.weights)
+                                      fixed_weights=None if latent.mode_weights is None else latent.linear.weights,
+                                      move_prior=latent.linear.move_prior)
             err = error(lat)
         except ValueError:  # the factorization failed at this noise
             reason = "the conditioning's factorization failed at a smaller noise"

@@ -136,8 +136,15 @@ class NumpyNet:
 
     def mode_probabilities(self, mean: float, var: float) -> np.ndarray:
         """(K,) the probability of each mode's interval of z_nl's first coordinate under N(mean, var)
-        (``decoder_modes``; the shares under N(0, 1))."""
-        gate = statistics.NormalDist(float(mean), math.sqrt(float(var)))
+        (``decoder_modes``; the shares under N(0, 1)); one-hot where var is 0, NaN where mean or var is not
+        finite or var < 0 (an overflow, which the callers' finiteness checks refuse)."""
+        mean, var = float(mean), float(var)
+        k = self._mode_thresholds.shape[0] + 1
+        if not (math.isfinite(mean) and math.isfinite(var) and var >= 0.0):
+            return np.full(k, np.nan)
+        if var == 0.0:
+            return np.eye(k)[int(self.mode_of(np.array([mean])))]
+        gate = statistics.NormalDist(mean, math.sqrt(var))
         return np.diff([0.0, *(gate.cdf(float(t)) for t in self._mode_thresholds), 1.0])
 
     def metric_design(self, x: np.ndarray) -> np.ndarray:
