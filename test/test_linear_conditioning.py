@@ -495,9 +495,16 @@ def test_the_encodings_of_z_lin_are_moved_to_each_mode():
     per_mode = [prim.decode_per_phase(np.zeros((21, 17)), grid, np.tile(np.eye(2)[k], (21, 1))) for k in range(2)]
     assert np.abs(per_mode[1] - per_mode[0]).max() > 1.9  # the modes' offsets differ by up to 2
     lat = prim.condition(grid[10:11], said[10:11], contexts={"obj": np.zeros((1, 1))})
+    assert lat.linear.move_prior
     assert np.abs(prim.mean_trajectory(lat, grid) - said).max() < 1e-3
     s = prim.sample(lat, grid, 200, rng=8)
     assert np.abs(s.mean(0) - said).max() < 1e-3
+    # the same through the rows of a partial via-point (joint a alone) and the planner's smoothed path
+    partial = prim.condition(grid[10:11], said[10:11], via_mask=np.array([[True, False]]),
+                             contexts={"obj": np.zeros((1, 1))})
+    planner = prim.condition_planner(grid[10:11], said[10:11], contexts={"obj": np.zeros((1, 1))})
+    for other in (partial, planner.latent):
+        assert np.abs(prim.mean_trajectory(other, grid) - said).max() < 1e-3
 
 
 def test_a_refinement_takes_the_linear_contexts_posterior_as_it_is(monkeypatch):
