@@ -505,6 +505,15 @@ def test_the_encodings_of_z_lin_are_moved_to_each_mode():
     planner = prim.condition_planner(grid[10:11], said[10:11], contexts={"obj": np.zeros((1, 1))})
     for other in (partial, planner.latent):
         assert np.abs(prim.mean_trajectory(other, grid) - said).max() < 1e-3
+    # a smoothed mean records the move as well: a refinement conditions again as from the plain posterior, also
+    # where the smallest change cannot be made (two via-points at one phase)
+    xv, yv = grid[[10, 10]], said[[10, 10]] + np.array([[0.05, 0.0], [0.06, 0.0]])
+    refined = []
+    for smooth in (1e-2, None):
+        lat = prim.condition(xv, yv, contexts={"obj": np.zeros((1, 1))}, via_noise=1e-4, smooth_noise=smooth)
+        assert lat.linear.move_prior is True
+        refined.append(prim.refine_linear(lat, xv, yv, tol=1e-3, max_iterations=30).latent.linear.candidates)
+    np.testing.assert_allclose(refined[0], refined[1], rtol=0, atol=1e-9)
 
 
 def test_a_refinement_takes_the_linear_contexts_posterior_as_it_is(monkeypatch):

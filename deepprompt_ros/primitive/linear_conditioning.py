@@ -423,14 +423,14 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
             gram_s = gram * scale * scale[:, None]
         z_s = m + _posterior_mean(g, d * scale, gram_s, scale) * s
         miss = r - z_s @ h.T
-        moved = smallest_change(net, h, miss, hm)
+        change = smallest_change(net, h, miss, hm)
         # a correction that would move the trajectory by more than PLANNER_CHANGE_BOUND times the smoothed
         # mean's largest miss is not made: the mean stays the smoothed one, which misses the via-points.
         # ‖L Δ‖∞ <= ‖L Δ‖₂ <= sqrt(Δᵀ M Δ): within the bound without forming L Δ when the last one is
         bound = PLANNER_CHANGE_BOUND * float(np.abs(miss[best]).max())
-        if moved is not None and (math.sqrt(max(moved[1][best], 0.0)) <= bound or
-                                  float(np.abs(net.trajectory_rows() @ moved[0][best]).max()) <= bound):
-            z_lin = z_s + moved[0]
+        if change is not None and (math.sqrt(max(change[1][best], 0.0)) <= bound or
+                                   float(np.abs(net.trajectory_rows() @ change[0][best]).max()) <= bound):
+            z_lin = z_s + change[0]
         else:
             z_lin = z_s
         if not math.isfinite(z_lin.sum() + (0.0 if single else loglik.sum())):
