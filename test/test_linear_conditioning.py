@@ -474,24 +474,36 @@ def test_a_context_modelled_per_mode_chooses_the_mode():
         np.testing.assert_array_equal(prim.mean_trajectory(again, x), prim.mean_trajectory(res.latent, x))
 
 
+def tight_encoder_model(shares=(0.3, 1.0), context_dims=(("obj", 1),), linear=None):
+    """:func:`decoder_modes_model` whose encoders (the contexts' and the via-points') all say z_lin = μ with variance
+    softplus(−12) ~ 6e-6 per coordinate; ``linear`` (a fitted linear context model) decides z_lin for its
+    modalities. Returns (prim, μ, grid (21,), the trajectory the encodings describe on the grid,
+    b + Σ_k π_k m_k + A μ: the training decodes each draw with the mode it chooses)."""
+    prim, _ = decoder_modes_model(shares=shares, context_dims=context_dims)
+    mu = 0.3 * np.random.default_rng(7).standard_normal(16)
+    with torch.no_grad():
+        prim.net.head.weight[:16] = 0.0
+        prim.net.head.bias[:16] = torch.as_tensor(mu, dtype=torch.float32)
+        prim.net.head.weight[17:33] = 0.0
+        prim.net.head.bias[17:33] = -12.0
+    names = [name for name, _ in context_dims]
+    norm = Normalization(np.zeros(2), np.ones(2), {n: np.zeros(1) for n in names}, {n: np.ones(1) for n in names})
+    prim = DeepProMP(prim.net, norm, ["a", "b"],
+                     metadata=None if linear is None else {"selection": {"context": {"linear": linear.to_json()}}})
+    grid = np.linspace(0.0, 1.0, 21)
+    shares_k = np.diff([0.0, *shares])
+    said = prim.decode_per_phase(np.tile(np.r_[mu, 0.0], (21, 1)).astype(np.float32).astype(np.float64), grid,
+                                 np.tile(shares_k, (21, 1)))
+    return prim, mu, grid, said
+
+
 def test_the_encodings_of_z_lin_are_moved_to_each_mode():
     """A context encoder that says z_lin = μ with variance ~1e-4: it describes the trajectory b + Σ_k π_k m_k + A μ
     (the training decodes each draw with the mode it chooses). A via-point on that trajectory where the modes
     differ (x = 0.5) leaves it as it is: each mode's candidate has the prior m − (1 − σ²) u_k, not μ beside its
     own offset, which would put the executed mean on the nearer mode's shape."""
-    prim, x = decoder_modes_model(shares=(0.3, 1.0), context_dims=(("obj", 1),))
-    mu = 0.3 * np.random.default_rng(7).standard_normal(16)
-    with torch.no_grad():  # every encoding (the context's and the via-points'): z_lin = μ, variance softplus(−12)
-        prim.net.head.weight[:16] = 0.0
-        prim.net.head.bias[:16] = torch.as_tensor(mu, dtype=torch.float32)
-        prim.net.head.weight[17:33] = 0.0
-        prim.net.head.bias[17:33] = -12.0
-    norm = Normalization(np.zeros(2), np.ones(2), {"obj": np.zeros(1)}, {"obj": np.ones(1)})
-    prim = DeepProMP(prim.net, norm, ["a", "b"])
+    prim, mu, grid, said = tight_encoder_model()
     assert prim.encode_context("obj", np.zeros((1, 1)))[1][0, :16].max() < 2e-4
-    grid = np.linspace(0.0, 1.0, 21)
-    said = prim.decode_per_phase(np.tile(np.r_[mu, 0.0], (21, 1)).astype(np.float32).astype(np.float64), grid,
-                                 np.tile([0.3, 0.7], (21, 1)))
     per_mode = [prim.decode_per_phase(np.zeros((21, 17)), grid, np.tile(np.eye(2)[k], (21, 1))) for k in range(2)]
     assert np.abs(per_mode[1] - per_mode[0]).max() > 1.9  # the modes' offsets differ by up to 2
     lat = prim.condition(grid[10:11], said[10:11], contexts={"obj": np.zeros((1, 1))})
@@ -516,9 +528,9 @@ def test_the_encodings_of_z_lin_are_moved_to_each_mode():
     np.testing.assert_allclose(refined[0], refined[1], rtol=0, atol=1e-9)
 
 
-def test_a_refinement_takes_the_linear_contexts_posterior_as_it_is(monkeypatch):
+def test_a_linear_contexts_model_alone_moves_nothing(monkeypatch):
     """The contexts' linear model decides z_lin (its encodings unused): no move to the modes in the conditioning,
-    and none when the refinement conditions again from the recorded prior, the linear model's posterior."""
+    and none when the refinement conditions again from the recorded prior and the model's rows."""
     from deepprompt_ros.primitive.linear_context import fit_linear_context
     from deepprompt_ros.primitive.numpy_net import NumpyNet
     prim, x = decoder_modes_model(shares=(0.5, 1.0), context_dims=(("side", 1),))
@@ -541,6 +553,79 @@ def test_a_refinement_takes_the_linear_contexts_posterior_as_it_is(monkeypatch):
     assert np.abs(prim._np.mode_latent_offsets()).max() > 0.1
     monkeypatch.setattr(NumpyNet, "mode_latent_offsets", lambda self: np.zeros((2, 16)))
     np.testing.assert_array_equal(refined(), with_offsets)
+
+
+def test_a_refinement_conditions_again_from_the_encodings_and_the_linear_contexts_rows():
+    """A context through a tight encoder (z_lin = μ) beside one the linear model decides: each mode's candidate
+    has its own moved prior and rows; the refinement, conditioning again at smaller noises, keeps both for every
+    candidate and ends where a conditioning asked at a small noise begins (the via-point 0.05 off the encoder's
+    trajectory at x = 1, where the modes meet: every candidate 0.05 off it)."""
+    from deepprompt_ros.primitive.linear_context import fit_linear_context
+    rng = np.random.default_rng(5)
+    model = fit_linear_context({"side": rng.standard_normal((40, 1))}, rng.standard_normal((40, 16)),
+                               np.arange(40) % 2, 2)
+    prim, mu, grid, said = tight_encoder_model(shares=(0.5, 1.0), context_dims=(("obj", 1), ("side", 1)),
+                                               linear=model)
+    ctx = {"obj": np.zeros((1, 1)), "side": np.array([[0.3]])}
+    xv, yv = grid[20:], said[20:] + np.array([[0.05, 0.0]])
+    lat = prim.condition(xv, yv, contexts=ctx, via_noise=0.5)
+    assert lat.linear.move_prior and lat.linear.context_rows is not None and lat.linear.weights.min() > 0.1
+    res = prim.refine_linear(lat, xv, yv, tol=1e-6)
+    assert res.max_error <= 1e-6
+    direct = prim.condition(xv, yv, contexts=ctx, via_noise=1e-7)
+    refined, asked = (prim.decode(lt.linear.candidates, grid) for lt in (res.latent, direct))
+    np.testing.assert_allclose(res.latent.linear.weights, direct.linear.weights, rtol=1e-9)
+    assert np.abs(refined - asked).max() < 1e-6
+    np.testing.assert_allclose(np.abs(refined - said).max((1, 2)), 0.05, atol=1e-6)
+    # the refined latent still records the linear model's posterior as its q_c (refine_map's prior)
+    np.testing.assert_array_equal(res.latent.context_mean, lat.context_mean)
+
+
+def test_an_aggregation_with_modes_spreads_refines_and_serves_as_its_samples_fall(tmp_path):
+    """The prior and a context through a tight encoder (no via-point): their samples fall in either mode, so the
+    linearized std holds the spread of the modes' offsets; the server's Sample draws each trajectory in the mode
+    its z chooses as the model does; a refinement starts by conditioning every mode exactly and leaves an
+    executed mean that meets the via-point already as it is."""
+    from deepprompt_ros.execution.limits import JointLimits
+    prim, mu, grid, said = tight_encoder_model(shares=(0.5, 1.0))
+    ctx = {"obj": np.zeros((1, 1))}
+    xs = grid[[5, 10]]
+    for lat in (prim.prior(), prim.condition(contexts=ctx)):
+        assert lat.linear is None and lat.mode_weights.min() > 0.4
+        drawn = prim.sample(lat, xs, 20000, rng=3).std(0)
+        assert drawn[1, 0] > 0.9  # the modes' offsets differ by 2 at x = 0.5 on joint a
+        np.testing.assert_allclose(prim.linearized_std(lat, xs), drawn, rtol=0.02)
+    path = save_checkpoint(tmp_path / "modes.safetensors", prim.net, prim.norm, prim.joint_names)
+    limits = JointLimits(lower=np.full(2, -10.0), upper=np.full(2, 10.0), max_velocity=np.ones(2),
+                         max_acceleration=np.ones(2), max_jerk=np.ones(2))
+    core = PrimitiveServerCore({"modes": load_primitive(PrimitiveEntry("modes", str(path)), ["a", "b"],
+                                                        pathlib.Path)}, ServerConfig(), limits)
+    served = core.sample(SampleRequest(primitive="modes", n_samples=500, n_points=21, seed=4)).samples
+    np.testing.assert_array_equal(served, core.primitives["modes"].model.sample(prim.prior(), grid, 500, 4))
+    assert served[:, 10, 0].std() > 0.9
+    # refinement from the context's aggregation: a via-point its executed mean meets leaves it as it is; one off it
+    # is met in the most probable mode, starting from that mode's move of the encodings: the executed mean's
+    # trajectory, 0.05 from the via-point (unmoved, the mode's offset would put the start ~1 from it)
+    lat = prim.condition(contexts=ctx)
+    on = prim.mean_trajectory(lat, grid[10:11])
+    res = prim.refine(lat, grid[10:11], on)
+    assert res.iterations == 0 and res.latent is lat and res.max_error <= 1e-6
+    top = int(np.argmax(lat.mode_weights))
+    res = prim.refine(lat, grid[10:11], on + np.array([[0.05, 0.0]]), latent_bound=1000.0)
+    assert res.max_error <= 1e-6 and res.latent.mode_weights is None and int(prim.mode_of(res.latent.mean)) == top
+    assert f"in mode {top}" in res.reason and res.error_history[0] == pytest.approx(0.05, abs=1e-3)
+
+
+def test_a_map_refinement_with_modes_stays_in_the_most_probable_mode_from_its_moved_prior():
+    """refine_map from a conditioning whose prior was moved to each mode: the MAP latent of the most probable mode,
+    its prior the moved one, so a via-point on the encoder's trajectory is kept there (the tight prior holds it
+    within the prior trajectory's own 4e-4 of it; unmoved, the mode's offset put it 0.6 off)."""
+    prim, mu, grid, said = tight_encoder_model()
+    lat = prim.condition(grid[10:11], said[10:11], contexts={"obj": np.zeros((1, 1))})
+    assert lat.linear.move_prior and lat.mode_weights[0] > 0.5
+    res = prim.refine_map(lat, grid[10:11], said[10:11], latent_bound=1000.0)  # (the test basis needs |z| ~ 100)
+    assert int(prim.mode_of(res.latent.mean)) == 0
+    assert res.max_error < 1e-3 and np.abs(prim.mean_trajectory(res.latent, grid) - said).max() < 1e-3
 
 
 def test_the_modes_probabilities_of_a_degenerate_or_overflowed_aggregation():

@@ -530,9 +530,9 @@ class DeepProMP:
                 lat = condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, *via[:3], observed, noise,
                                       n_candidates, context_rows=context_rows, smooth_noise=smooth,
                                       weight_noise=self.mode_noise)
-            # (the recorded prior of z_lin is the linear model's posterior: a re-conditioning takes it as it is)
-            block = lat.linear if not lat.linear.move_prior else dataclasses.replace(lat.linear, move_prior=False)
-            return LatentGaussian(lat.mean, lat._var, block,
+            # (the latent's q_c records the linear model's posterior of z_lin; its block records the encodings'
+            # aggregation and the rows, which a re-conditioning starts from again)
+            return LatentGaussian(lat.mean, lat._var, lat.linear,
                                   np.concatenate([ctx.mean[:k_l], q_c.mean[k_l:]]),
                                   np.concatenate([ctx.var[:k_l], q_c.var[k_l:]]), lat.mode_weights)
         # no observed joint of a via-point of weight > 0: the aggregation is the distribution
@@ -632,7 +632,9 @@ class DeepProMP:
     def linearized_std(self, latent: LatentGaussian, x) -> np.ndarray:
         """Per-point standard deviation of the trajectory without sampling.
 
-        Plain latent: linearized at the mean, sqrt(diag(J diag(var) Jᵀ)), J = ∂μ_y/∂z at (mean, x).
+        Plain latent: linearized at the mean, sqrt(diag(J diag(var) Jᵀ)), J = ∂μ_y/∂z at (mean, x); with
+        ``mode_weights`` (an aggregation with several modes of the decoder) plus the weighted variance of the
+        modes' offsets Φ(x) m_k, between which its samples fall.
         Split latent: exact for the mixture :meth:`sample` draws from, as the decoder is linear in
         z_lin: Var = J_lin Σ_lin J_linᵀ (the full z_lin covariance, the same for every candidate,
         J_lin = Φ(x) A) + the weighted variance of the candidates' mean trajectories.
@@ -648,7 +650,13 @@ class DeepProMP:
         x = self.check_phases(x)
         if latent.linear is None:
             _, jac = self.decoder_jacobian(latent.mean, x)  # (T, d, k)
-            return np.sqrt(((jac * latent.std) ** 2).sum(axis=-1))
+            var = ((jac * latent.std) ** 2).sum(axis=-1)
+            if latent.mode_weights is not None:  # and the spread of the modes' offsets the mean weighs
+                w = np.asarray(latent.mode_weights, dtype=np.float64)
+                offsets = self._np.mode_offsets(x)  # (K, T, d)
+                dev = offsets - np.einsum("k,ktd->td", w, offsets)
+                var = var + np.einsum("k,ktd->td", w, dev * dev)
+            return np.sqrt(var)
         block = latent.linear
         _, j_lin = self._np.linear_design(x)  # (T, d, k_l)
         var = linear_block_variance(block, j_lin.reshape(-1, block.k_lin)).reshape(x.shape[0], -1)

@@ -48,8 +48,9 @@ class LinearBlock:
 
     z_lin | z_nl = candidate c  ~  N(candidates[c, :k_l], diag(scale) Q diag(scale)),
 
-    Q the posterior covariance of the whitened u = (z_lin − m) / scale (m, scale² the prior, the
-    context aggregation), the same for every candidate, stored in one of two factored forms:
+    Q the posterior covariance of the whitened u = (z_lin − m) / scale (m, scale² the prior: the
+    context aggregation, its m moved to each candidate's mode with ``move_prior``), the same for every
+    candidate, stored in one of two factored forms:
 
     * ``form="observation"`` (M <= k_l rows): ``design`` G (M, k_l), the whitened design (rows of the
       via-points' observed joints divided by their noise, columns times ``scale``), and ``chol`` the
@@ -81,10 +82,15 @@ class LinearBlock:
         The via-point noise the candidates' weights were computed at when it is not ``noise``
         (``ModelConfig.mode_noise``); a re-conditioning at a smaller noise keeps it.
     move_prior : bool
-        Whether the recorded prior of z_lin (the latent's ``context_mean``, ``context_var``) is the encodings'
-        aggregation that a re-conditioning moves to each mode, as this one did
-        (:func:`~deepprompt_ros.primitive.linear_conditioning.condition_split`); False where no move was made or
-        the recorded prior is the contexts' linear model's posterior.
+        Whether the conditioning moved the prior's z_lin to each candidate's mode
+        (:func:`~deepprompt_ros.primitive.linear_conditioning.condition_split`).
+    prior : (array (k,), array (k,)), or None
+        The mean and variance the block was conditioned from (q_c, the aggregation of the contexts' and
+        images' encodings; None for a block built by hand).
+    context_rows : (array (M', k_l), array (M',) or (K, M')), or None
+        The rows of the contexts' linear model the block was conditioned on besides the via-points. A
+        re-conditioning (:func:`~deepprompt_ros.primitive.linear_conditioning.refine_split`) starts again
+        from ``prior`` and these rows, as this conditioning did.
     """
 
     scale: np.ndarray
@@ -98,6 +104,8 @@ class LinearBlock:
     nl_var: np.ndarray
     weight_noise: float | None = None
     move_prior: bool = False
+    prior: tuple[np.ndarray, np.ndarray] | None = None
+    context_rows: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def k_lin(self) -> int:

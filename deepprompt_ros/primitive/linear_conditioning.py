@@ -56,8 +56,8 @@ from deepprompt_ros.primitive.latent import PLANNER_CHANGE_BOUND, LatentGaussian
 if TYPE_CHECKING:
     from deepprompt_ros.primitive.numpy_net import NumpyNet
 
-__all__ = ["whitened_posterior", "condition_split", "smallest_change", "linear_block_variance", "SplitRefinement",
-           "refine_split", "TIE_TOLERANCE", "MODE_GATE_VAR", "normal_points", "mode_candidates"]
+__all__ = ["whitened_posterior", "condition_split", "moved_prior_means", "smallest_change", "linear_block_variance",
+           "SplitRefinement", "refine_split", "TIE_TOLERANCE", "MODE_GATE_VAR", "normal_points", "mode_candidates"]
 
 #: Candidates of z_nl whose log posterior densities are within this relative amount of the best are
 #: tied (rounding, not evidence); the executed mean is the first of them, the mean of q_all(z_nl) when
@@ -240,6 +240,26 @@ def _mode_weights(net: "NumpyNet", candidates_nl: np.ndarray, loglik: np.ndarray
     return weights, best
 
 
+def moved_prior_means(net: "NumpyNet", context_mean: np.ndarray, context_var: np.ndarray) -> np.ndarray | None:
+    """The prior of z_lin for each mode of the decoder, (K, k_l): the encodings' aggregation q_c (``context_mean``,
+    ``context_var``, (k,)) moved to the mode; None where no move applies (one mode, an MLP residual, or no
+    encoding informs z_lin: every variance 1).
+
+    The decoder reads z_nl through the mode alone, whose step passes the encoders no gradient: the training
+    decodes each draw of the aggregation with the mode the draw chooses, so the encodings of the contexts and
+    images give z_lin relative to the modes' mean over those draws. For mode k, whose decoder adds Φ m_k, the
+    prior of z_lin is theirs moved by that mode's offset from the mean in z_lin (u_k − ū,
+    :meth:`NumpyNet.mode_latent_offsets`, ū under q_c's distribution of the mode's coordinate) as far as they
+    inform it: m − (1 − σ²)(u_k − ū) per coordinate, the aggregation of the prior N(0, I) with the moved
+    encodings."""
+    k_l = net.k_lin
+    if not net.has_modes or net.mlp_active or not np.any(context_var[:k_l] < 1.0):
+        return None
+    u = net.mode_latent_offsets()
+    u = u - net.mode_probabilities(context_mean[k_l], context_var[k_l]) @ u
+    return context_mean[:k_l] - (1.0 - context_var[:k_l]) * u
+
+
 def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.ndarray, all_mean: np.ndarray,
                     all_var: np.ndarray, x: np.ndarray, y: np.ndarray, w: np.ndarray, mask: np.ndarray,
                     noise: float, n_candidates: int = 32, seed: int = 0,
@@ -293,9 +313,9 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
         (:func:`refine_split` conditions again on the via-points alone, and the evidence for the modes stays
         that of the first conditioning, contexts included).
     move_prior : bool
-        With several modes and no MLP residual: whether ``context_mean``, ``context_var`` are the encodings'
-        aggregation, whose z_lin is moved to each candidate's mode (False: a prior of z_lin taken as it is,
-        such as the contexts' linear model's posterior that :func:`refine_split` may condition from).
+        With several modes and no MLP residual: whether the z_lin of ``context_mean``, ``context_var`` (the
+        encodings' aggregation) is moved to each candidate's mode (:func:`moved_prior_means`; False: taken as
+        it is).
 
     Returns
     -------
@@ -319,17 +339,10 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
             candidates_nl = mode_candidates(net, prior_mean, prior_var, n_candidates, seed)
         else:
             candidates_nl = _candidates(all_mean[k_l:], all_var[k_l:], n_candidates, seed)
-    moved = move_prior and modes and not net.mlp_active and bool(np.any(context_var[:k_l] < 1.0))
+    per_mode = moved_prior_means(net, context_mean, context_var) if move_prior else None
+    moved = per_mode is not None
     if moved:
-        # the decoder reads z_nl through the mode alone, whose step passes the encoders no gradient: the training
-        # decodes each draw of the aggregation with the mode the draw chooses, so the encodings of the contexts
-        # and images give z_lin relative to the modes' mean over those draws. For the candidate of mode k, whose
-        # decoder adds Φ m_k, the prior of z_lin is theirs moved by that mode's offset from the mean in z_lin
-        # (u_k − ū, :meth:`NumpyNet.mode_latent_offsets`) as far as they inform it: m − (1 − σ²)(u_k − ū) per
-        # coordinate, the aggregation of the prior N(0, I) of the mode's own coordinates with the moved encodings
-        u = net.mode_latent_offsets()
-        u = u - net.mode_probabilities(context_mean[k_l], context_var[k_l]) @ u
-        m = m - (1.0 - context_var[:k_l]) * u[net.mode_of(candidates_nl)]  # (C, k_l)
+        m = per_mode[net.mode_of(candidates_nl)]  # (C, k_l)
     if x.shape[0] == 0:  # no via-point: the context rows alone
         h, g = np.zeros((0, k_l)), np.zeros((0, k_l))
         r, d = np.zeros((candidates_nl.shape[0], 0)), np.zeros((candidates_nl.shape[0], 0))
@@ -459,7 +472,7 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
     block = LinearBlock(scale=s, candidates=cands, weights=weights, chol=chol,
                         design=g if form == "observation" else None, form=form, noise=float(noise),
                         via_error=via_error, nl_var=nl_var, weight_noise=weight_noise if modes else None,
-                        move_prior=moved)
+                        move_prior=moved, prior=(context_mean, context_var), context_rows=context_rows)
     # (the variance: from the block when it is read)
     return LatentGaussian(mean, linear=block, context_mean=context_mean, context_var=context_var,
                           mode_weights=mode_weights)
@@ -538,7 +551,8 @@ def refine_split(net: "NumpyNet", latent: LatentGaussian, x: np.ndarray, y: np.n
 
     0 iterations when the mean meets them (|error| <= ``tol`` on every constrained joint) already.
     Else z_lin is conditioned again on these via-points (weight 1 each, constrained joints only),
-    from the recorded prior q_c and with the latent's z_nl candidates, with the noise divided by
+    from the prior and the contexts' rows the block records (as the first conditioning: moved to the
+    modes where it was) and with the latent's z_nl candidates, with the noise divided by
     ``factor`` per iteration (the error of a via-point the linear block can reach falls as the
     noise squared once the noise is below the scale of the block's weakest direction the via-points
     need: it can stay level over several reductions first) until the mean meets them, the noise falls
@@ -559,10 +573,13 @@ def refine_split(net: "NumpyNet", latent: LatentGaussian, x: np.ndarray, y: np.n
 
     best, best_err = latent, error(latent)
     history = [best_err]
-    noise, it, reason = latent.linear.noise, 0, "met by the exact conditioning"
-    cands = latent.linear.candidates[:, k_l:]
+    block = latent.linear
+    noise, it, reason = block.noise, 0, "met by the exact conditioning"
+    cands = block.candidates[:, k_l:]
+    # the prior the block was conditioned from (a block built by hand: the latent's recorded q_c)
+    prior_mean, prior_var = block.prior if block.prior is not None else (latent.context_mean, latent.context_var)
     # q_all's z_nl variance, all condition_split reads of it (the z_lin part of the latent's var is not needed)
-    all_var = np.concatenate([latent.context_var[:k_l], latent.linear.nl_var])
+    all_var = np.concatenate([prior_var[:k_l], block.nl_var])
     while best_err > tol:
         if it >= max_iterations:
             reason = "budget"
@@ -578,11 +595,11 @@ def refine_split(net: "NumpyNet", latent: LatentGaussian, x: np.ndarray, y: np.n
         it += 1
         try:
             with np.errstate(all="ignore"):
-                lat = condition_split(net, latent.context_mean, latent.context_var, latent.mean, all_var, x, y,
-                                      None, mask, noise, candidates_nl=cands,
-                                      weight_noise=latent.linear.weight_noise or latent.linear.noise,
-                                      fixed_weights=None if latent.mode_weights is None else latent.linear.weights,
-                                      move_prior=latent.linear.move_prior)
+                lat = condition_split(net, prior_mean, prior_var, latent.mean, all_var, x, y, None, mask, noise,
+                                      candidates_nl=cands, context_rows=block.context_rows,
+                                      weight_noise=block.weight_noise or block.noise,
+                                      fixed_weights=None if latent.mode_weights is None else block.weights,
+                                      move_prior=block.move_prior)
             err = error(lat)
         except ValueError:  # the factorization failed at this noise
             reason = "the conditioning's factorization failed at a smaller noise"
@@ -612,5 +629,5 @@ def moved_mean(moved: LatentGaussian, original: LatentGaussian) -> LatentGaussia
     o, m = original.linear, moved.linear
     block = dataclasses.replace(m, scale=o.scale, chol=o.chol, design=o.design, form=o.form, noise=o.noise,
                                 nl_var=o.nl_var)
-    return LatentGaussian(moved.mean, original.var, linear=block, context_mean=moved.context_mean,
-                          context_var=moved.context_var, mode_weights=moved.mode_weights)
+    return LatentGaussian(moved.mean, original.var, linear=block, context_mean=original.context_mean,
+                          context_var=original.context_var, mode_weights=moved.mode_weights)

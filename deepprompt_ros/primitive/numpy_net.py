@@ -193,6 +193,10 @@ class NumpyNet:
         """Φ(x) m_k of the mode each z_nl chooses, joint units: z_nl (k − k_l,) → (T, d), (n, k − k_l) → (n, T, d)."""
         return self._per_mode(x)[self.mode_of(z_nl)]
 
+    def mode_offsets(self, x) -> np.ndarray:
+        """Φ(x) m_k of every mode of the decoder at phases x (T,), joint units, (K, T, d) (read-only)."""
+        return self._per_mode(x)
+
     def _per_mode(self, x) -> np.ndarray:
         """Φ(x) m_k of every mode, joint units, (K, T, d); cached per phase grid (read-only)."""
         return self._per_grid(self._mode_cache, x, lambda x: np.einsum("tb,kbd->ktd", self._phi(x), self._modes))

@@ -21,7 +21,8 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 
 from deepprompt_ros.primitive.latent import LatentGaussian
-from deepprompt_ros.primitive.linear_conditioning import SplitRefinement, refine_split
+from deepprompt_ros.primitive.linear_conditioning import (MODE_GATE_VAR, SplitRefinement, condition_split,
+                                                          moved_prior_means, refine_split)
 
 if TYPE_CHECKING:
     from deepprompt_ros.primitive.deep_promp import DeepProMP
@@ -123,8 +124,14 @@ def refine_map(prim: "DeepProMP", latent: LatentGaussian, via_x, via_y, joint_ma
     tol: it is not meant to), ``sample_mean_error`` = ``max_error``.
     """
     x, y, mask = refinement_inputs(prim, via_x, via_y, joint_mask, max_iterations, tol)
+    start = np.asarray(latent.mean, dtype=np.float64)
+    if latent.mode_weights is not None:  # several modes: the MAP latent of the most probable one
+        mode = int(np.argmax(latent.mode_weights))
+        start = _one_mode(prim, latent, mode).mean if latent.linear is None else _in_mode(prim, start, mode)
     if prior == "posterior":
         known = latent if latent.context_mean is None else LatentGaussian(latent.context_mean, latent.context_var)
+        if latent.mode_weights is not None:
+            known = _mode_prior(prim, latent, start)
         m, prec = np.asarray(known.mean, dtype=np.float64), 1.0 / np.asarray(known.var, dtype=np.float64)
     elif prior == "standard":
         m, prec = np.zeros(prim.latent_dim), np.ones(prim.latent_dim)
@@ -144,7 +151,7 @@ def refine_map(prim: "DeepProMP", latent: LatentGaussian, via_x, via_y, joint_ma
         dz = z - m
         return r, J, float(r @ r + dz @ (prec * dz)), y_hat
 
-    z = np.clip(latent.mean, -latent_bound, latent_bound).astype(np.float64)
+    z = np.clip(start, -latent_bound, latent_bound)
     r, J, cost, y_hat = terms(z)
     history = [float(np.abs((y - y_hat) * mask).max())]
     lam, it, reason = 0.0, 0, "budget"
@@ -174,6 +181,56 @@ def refine_map(prim: "DeepProMP", latent: LatentGaussian, via_x, via_y, joint_ma
     return RefinementResult(latent=LatentGaussian(z, np.diag(cov).copy()), max_error=max_err, errors=err,
                             sample_mean_error=max_err, iterations=it, reachable=max_err <= tol, reason=reason,
                             error_history=np.minimum.accumulate(np.array(history)))
+
+
+def _in_mode(prim: "DeepProMP", z: np.ndarray, mode: int) -> np.ndarray:
+    """``z`` (k,) with the coordinate that chooses the decoder's mode at ``mode``'s median unless it is in that
+    mode's interval already."""
+    net, k_l = prim._np, prim.cfg.latent_linear
+    if int(net.mode_of(z[k_l:])) == mode:
+        return z
+    z = z.copy()
+    z[k_l] = net.mode_medians[mode]
+    return z
+
+
+def _one_mode(prim: "DeepProMP", latent: LatentGaussian, mode: int) -> LatentGaussian:
+    """An aggregation's latent with several modes of the decoder (``mode_weights``) as the latent of one of
+    them: z_nl's mode coordinate at the mode's median with the variance a conditioned latent records for it
+    (``MODE_GATE_VAR``), z_lin moved to the mode as the encodings are
+    (:func:`~deepprompt_ros.primitive.linear_conditioning.moved_prior_means`)."""
+    k_l = prim.cfg.latent_linear
+    mean, var = _in_mode(prim, np.asarray(latent.mean, dtype=np.float64), mode), latent.var.copy()
+    per_mode = moved_prior_means(prim._np, latent.mean, latent.var)
+    if per_mode is not None:
+        mean = mean.copy()
+        mean[:k_l] = per_mode[mode]
+    var[k_l] = MODE_GATE_VAR
+    return LatentGaussian(mean, var, context_mean=latent.context_mean, context_var=latent.context_var)
+
+
+def _mode_prior(prim: "DeepProMP", latent: LatentGaussian, z: np.ndarray) -> LatentGaussian:
+    """What ``latent`` (with several modes of the decoder) knows besides the via-points, for the mode ``z``
+    chooses: the prior its conditioning started from (its block's record, else its q_c: a latent of the
+    aggregation alone) with z_lin moved to that mode and conditioned on the contexts' rows, as that
+    conditioning did for its candidate of the mode; z_nl as recorded (q_c) but for the coordinate that chooses
+    the mode: at ``z``'s, with the variance a conditioned latent records for it (``MODE_GATE_VAR``), so the MAP
+    latent stays in the mode."""
+    block = latent.linear
+    if block is not None and block.prior is not None:
+        pm, pv = block.prior
+    elif latent.context_mean is not None:
+        pm, pv = latent.context_mean, latent.context_var
+    else:
+        pm, pv = latent.mean, latent.var
+    k_l = prim.cfg.latent_linear
+    given = condition_split(prim._np, pm, pv, pm, pv, np.zeros(0), np.zeros((0, prim.n_joints)), None, None, 1.0, 0,
+                            candidates_nl=z[None, k_l:], context_rows=None if block is None else block.context_rows,
+                            move_prior=True if block is None else block.move_prior)
+    qm, qv = (pm, pv) if latent.context_mean is None else (latent.context_mean, latent.context_var)
+    mean, var = np.concatenate([given.mean[:k_l], qm[k_l:]]), np.concatenate([given.var[:k_l], qv[k_l:]])
+    mean[k_l], var[k_l] = z[k_l], MODE_GATE_VAR
+    return LatentGaussian(mean, var)
 
 
 # ---------------------------------------------------------------------------------------- exact
@@ -418,6 +475,20 @@ def refine_exact(prim: "DeepProMP", latent: LatentGaussian, via_x, via_y, joint_
     if time_budget is not None and not (time_budget > 0 and math.isfinite(time_budget)):
         raise ValueError(f"time_budget must be a finite number of seconds > 0 (or None: no limit); got {time_budget}")
     deadline = math.inf if time_budget is None else time.perf_counter() + time_budget
+    in_mode = ""
+    if latent.linear is None and latent.mode_weights is not None:
+        # an aggregation with several modes of the decoder and no via-point in it: its executed mean weighs the
+        # modes, the decoder that μ̃ is fitted with has one
+        r = (y - prim.decode_mean(latent, x)) * mask
+        if float(np.abs(r).max()) <= tol:
+            y_bar = prim.sample(latent, x, n_samples, seed).mean(0)
+            return RefinementResult(latent=latent, max_error=float(np.abs(r).max()), errors=r,
+                                    sample_mean_error=float(np.abs((y - y_bar) * mask).max()), iterations=0,
+                                    reachable=True, reason="met by the executed mean already",
+                                    error_history=np.array([float(np.abs(r).max())]))
+        mode = int(np.argmax(latent.mode_weights))
+        in_mode = f" (in mode {mode}, the aggregation's most probable: {float(latent.mode_weights[mode]):.3g})"
+        latent = _one_mode(prim, latent, mode)
     split = None
     if latent.linear is not None and latent.context_mean is not None:
         split = refine_split(prim._np, latent, x, y, mask, tol, max_iterations, deadline=deadline)
@@ -448,6 +519,7 @@ def refine_exact(prim: "DeepProMP", latent: LatentGaussian, via_x, via_y, joint_
     if cut and not fit.out_of_time:
         reason += f"; σ̃ fit cut short by the time budget of {time_budget:g} s"
     y_bar = prim.decode(mu[None] + eps * s[None], x).mean(0)
+    reason += in_mode
     return RefinementResult(
         latent=LatentGaussian(mu, s ** 2), max_error=max_err, errors=r, iterations=it,
         sample_mean_error=float(np.abs((y - y_bar) * fit.mf).max()), reachable=max_err <= tol, reason=reason,
