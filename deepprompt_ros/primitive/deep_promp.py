@@ -265,8 +265,8 @@ class DeepProMP:
         aggregation, each with the mode its draw chooses, and the step passes no gradient to that coordinate's
         encoding. The executed mean is therefore the mean over those draws: each mode's offset weighted by the
         probability of its interval under the aggregation's N(mean, var) of that coordinate (``mode_weights``;
-        the shares for the prior), which is where the samples fall too — not the one mode the coordinate's mean
-        falls in."""
+        the shares for the prior), which is where the samples (:meth:`sample`) fall too — not the one mode the
+        coordinate's mean falls in."""
         if not self._np.has_modes or self._np.mlp_active:
             return LatentGaussian(mean, var, context_mean=context_mean, context_var=context_var)
         k_l = self.cfg.latent_linear

@@ -190,10 +190,11 @@ class LatentGaussian:
         prior of MAP refinement, whose likelihood holds the via-points. None: not recorded.
     mode_weights : array, shape (K,), or None
         A decoder of several modes (``decoder_modes`` K): the weight of each mode's offset in the
-        executed mean, the posterior probabilities of the modes, with ``mean``'s z_lin the same
-        weighting of the modes' z_lin means — the posterior mean of the trajectory
-        (:meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.mean_trajectory`). None: the mode
-        ``mean``'s z_nl chooses.
+        executed mean (:meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.mean_trajectory`). A split
+        latent: the posterior probabilities of the modes, with ``mean``'s z_lin the same weighting of the
+        modes' z_lin means — the posterior mean of the trajectory. An aggregation alone (no ``linear``):
+        the probabilities of the modes' intervals under N(mean, var) of the mode's coordinate, where its
+        samples fall. None: the mode ``mean``'s z_nl chooses.
     """
 
     __slots__ = ("mean", "_var", "linear", "context_mean", "context_var", "mode_weights")

@@ -99,7 +99,9 @@ def refine_map(prim: "DeepProMP", latent: LatentGaussian, via_x, via_y, joint_ma
     :meth:`DeepProMP.condition` records in the latent (``context_mean``, ``context_var``), for plain
     and split latents alike; the via-points enter through the likelihood alone, never twice. A latent
     that records no q_c (built by hand) is the prior itself: it must not hold the via-points'
-    evidence. ``"standard"`` — the model's prior N(0, I). For a decoder that is linear
+    evidence. With several modes of the decoder (``mode_weights``): the MAP latent of the most probable
+    mode, whose posterior prior is the one that conditioning gave the mode (the encodings moved to it, the
+    contexts' rows; :func:`_mode_prior`). ``"standard"`` — the model's prior N(0, I). For a decoder that is linear
     in z (``decoder_basis`` > 0 with ``residual_scale`` 0) and the standard prior this is exactly
     Gaussian conditioning of the latent linear-Gaussian model — ProMP conditioning in the latent.
     Solved by Levenberg–Marquardt with the decoder's exact Jacobian (one step when it is linear).
@@ -444,6 +446,11 @@ def refine_exact(prim: "DeepProMP", latent: LatentGaussian, via_x, via_y, joint_
     block: σ̃ = σ*), so its samples pass the via-points within the noise they were asked with. Only
     if that cannot meet them (more constraints than the linear block can satisfy) do the stages below
     continue from its best fit, with a plain latent.
+
+    An aggregation with several modes of the decoder and no linear block (``mode_weights``: the prior,
+    or contexts through their encoders) whose executed mean meets the via-points already is returned as
+    it is; else the stages fit the most probable mode, starting from the encodings moved to it, and the
+    reason names the mode.
 
     Unreachable via-points: stage 1 stops at a stationary point when no damped step (damping up
     to 1e6) decreases the squared error or the gradient Jᵀr vanishes; it then restarts from
