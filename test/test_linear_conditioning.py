@@ -498,7 +498,7 @@ def tight_encoder_model(shares=(0.3, 1.0), context_dims=(("obj", 1),), linear=No
 
 
 def test_the_encodings_of_z_lin_are_moved_to_each_mode():
-    """A context encoder that says z_lin = μ with variance ~1e-4: it describes the trajectory b + Σ_k π_k m_k + A μ
+    """A context encoder that says z_lin = μ with variance ~6e-6: it describes the trajectory b + Σ_k π_k m_k + A μ
     (the training decodes each draw with the mode it chooses). A via-point on that trajectory where the modes
     differ (x = 0.5) leaves it as it is: each mode's candidate has the prior m − (1 − σ²) u_k, not μ beside its
     own offset, which would put the executed mean on the nearer mode's shape."""
@@ -626,6 +626,24 @@ def test_a_map_refinement_with_modes_stays_in_the_most_probable_mode_from_its_mo
     res = prim.refine_map(lat, grid[10:11], said[10:11], latent_bound=1000.0)  # (the test basis needs |z| ~ 100)
     assert int(prim.mode_of(res.latent.mean)) == 0
     assert res.max_error < 1e-3 and np.abs(prim.mean_trajectory(res.latent, grid) - said).max() < 1e-3
+    # the standard prior holds the mode as well (nothing else pulls its coordinate: it would drift to 0, mode 1)
+    std = prim.refine_map(lat, grid[10:11], said[10:11], prior="standard", latent_bound=1000.0).latent
+    assert int(prim.mode_of(std.mean)) == 0 and std.var[16] <= 1e-4
+
+
+def test_a_refinement_weighs_the_candidates_as_a_conditioning_at_its_noise():
+    """With an MLP residual the candidates of z_nl are points of q_all; the re-conditioning at a smaller noise
+    weighs them by the via-points' likelihood times q_c / q_all, q_all centred where the candidates were drawn
+    (not at the best candidate's z_nl): the weights a conditioning asked at that noise gives."""
+    prim, x, Y = split_model(k_l=12, k_n=4, rs=1.0)
+    rng = np.random.default_rng(3)
+    for _ in range(3):
+        xv, yv = random_via_points(rng, x, Y, 3)
+        lat = prim.condition(xv, yv)
+        res = prim.refine_linear(lat, xv, yv, tol=1e-6)
+        assert res.iterations >= 1 and res.max_error <= 1e-6
+        direct = prim.condition(xv, yv, via_noise=lat.linear.noise / 10 ** res.iterations)
+        np.testing.assert_allclose(res.latent.linear.weights, direct.linear.weights, rtol=0, atol=1e-9)
 
 
 def test_the_modes_probabilities_of_a_degenerate_or_overflowed_aggregation():

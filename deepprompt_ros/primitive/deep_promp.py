@@ -510,9 +510,10 @@ class DeepProMP:
                                    weight_noise=self.mode_noise)
         if self._split and context_rows is not None:
             # q(z | contexts, images) with the linear contexts' exact posterior of z_lin (its diagonal) is the
-            # prior of MAP refinement and of the re-conditioning of refine_linear; without a via-point it is the
-            # distribution itself. With several modes that prior is the one of the mode the via-points and
-            # contexts chose (the contexts' model has a mean per mode).
+            # latent's record of q_c: the prior of MAP refinement of a model with one mode; without a via-point it
+            # is the distribution itself. With several modes it is the one of the mode the via-points and contexts
+            # chose (the contexts' model has a mean per mode). A re-conditioning starts from the encodings'
+            # aggregation and the rows that the linear block records.
             def given_contexts(n, candidates=None):
                 return condition_split(self._np, q_c.mean, q_c.var, q_all.mean, q_all.var, np.zeros(0),
                                        np.zeros((0, self.n_joints)), None, None, 1.0, n, candidates_nl=candidates,
@@ -723,7 +724,9 @@ class DeepProMP:
         """Deployment-time refinement of (μ̃, σ̃) that meets the via-points to ``tol`` (paper Eq. 5
         and appendix): :func:`deepprompt_ros.primitive.refinement.refine_exact`, where the other
         parameters are described. A split latent whose mean meets them already comes back as it is
-        (0 iterations); else its linear block is conditioned again with a smaller noise.
+        (0 iterations); else its linear block is conditioned again with a smaller noise. So does an
+        aggregation with several modes whose executed mean meets them; else its most probable mode is
+        fitted.
         :meth:`refine_map` is the regularized (MAP) alternative.
 
         Parameters
@@ -788,13 +791,15 @@ class DeepProMP:
 
         Parameters
         ----------
-        latent : LatentGaussian, the initialization (its mean) and (``prior="posterior"``) the prior
+        latent : LatentGaussian, the initialization (its mean; with several modes of the decoder, moved
+            to its most probable mode) and (``prior="posterior"``) the prior
         via_x : array, shape (n,); via_y : array, shape (n, d)
         joint_mask : array of bool, shape (n, d) or (d,), optional; joints to meet (default all)
         prior : {"posterior", "standard"}
             What ``latent`` knows besides the via-points — q_c, the aggregation of its contexts and
             images, recorded by :meth:`condition` (a latent without that record is taken as the
-            prior itself) — so the via-points count once, in the likelihood; or the model's N(0, I).
+            prior itself; with several modes, what its conditioning gave the most probable mode) — so
+            the via-points count once, in the likelihood; or the model's N(0, I).
         noise_std : float or array, shape (d,), optional
             Via-point standard deviation in joint units (default σ_y · each joint's normalization std).
         """

@@ -310,8 +310,8 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
         ``noise`` (``ModelConfig.mode_noise``; the context rows keep theirs).
     fixed_weights : array, shape (C,), optional
         With several modes and no MLP residual: the candidates' weights to keep instead of computing them
-        (:func:`refine_split` conditions again on the via-points alone, and the evidence for the modes stays
-        that of the first conditioning, contexts included).
+        (:func:`refine_split` conditions again at smaller noises, and the evidence for the modes stays that of
+        the first conditioning).
     move_prior : bool
         With several modes and no MLP residual: whether the z_lin of ``context_mean``, ``context_var`` (the
         encodings' aggregation) is moved to each candidate's mode (:func:`moved_prior_means`; False: taken as
@@ -578,7 +578,9 @@ def refine_split(net: "NumpyNet", latent: LatentGaussian, x: np.ndarray, y: np.n
     cands = block.candidates[:, k_l:]
     # the prior the block was conditioned from (a block built by hand: the latent's recorded q_c)
     prior_mean, prior_var = block.prior if block.prior is not None else (latent.context_mean, latent.context_var)
-    # q_all's z_nl variance, all condition_split reads of it (the z_lin part of the latent's var is not needed)
+    # q_all of z_nl, all condition_split reads of it: the candidates' proposal (the first candidate is its mean
+    # where the candidates are its points; otherwise the mean is not read)
+    all_mean = np.concatenate([prior_mean[:k_l], cands[0]])
     all_var = np.concatenate([prior_var[:k_l], block.nl_var])
     while best_err > tol:
         if it >= max_iterations:
@@ -595,7 +597,7 @@ def refine_split(net: "NumpyNet", latent: LatentGaussian, x: np.ndarray, y: np.n
         it += 1
         try:
             with np.errstate(all="ignore"):
-                lat = condition_split(net, prior_mean, prior_var, latent.mean, all_var, x, y, None, mask, noise,
+                lat = condition_split(net, prior_mean, prior_var, all_mean, all_var, x, y, None, mask, noise,
                                       candidates_nl=cands, context_rows=block.context_rows,
                                       weight_noise=block.weight_noise or block.noise,
                                       fixed_weights=None if latent.mode_weights is None else block.weights,

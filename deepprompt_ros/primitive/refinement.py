@@ -109,8 +109,9 @@ def refine_map(prim: "DeepProMP", latent: LatentGaussian, via_x, via_y, joint_ma
     Parameters
     ----------
     prim : DeepProMP
-    latent : LatentGaussian, the initialization (its mean) and (``prior="posterior"``) the prior (its
-        recorded q_c, else itself)
+    latent : LatentGaussian, the initialization (its mean; with ``mode_weights``, moved to the most probable
+        mode) and (``prior="posterior"``) the prior (its recorded q_c, else itself; with ``mode_weights``,
+        :func:`_mode_prior`)
     via_x : array, shape (n,); via_y : array, shape (n, d)
     joint_mask : array of bool, shape (n, d) or (d,), optional; joints to meet (default all)
     noise_std : float or array (d,), optional
@@ -137,6 +138,9 @@ def refine_map(prim: "DeepProMP", latent: LatentGaussian, via_x, via_y, joint_ma
         m, prec = np.asarray(known.mean, dtype=np.float64), 1.0 / np.asarray(known.var, dtype=np.float64)
     elif prior == "standard":
         m, prec = np.zeros(prim.latent_dim), np.ones(prim.latent_dim)
+        if latent.mode_weights is not None:  # (the mode held, as _mode_prior holds it)
+            k_l = prim.cfg.latent_linear
+            m[k_l], prec[k_l] = start[k_l], 1.0 / MODE_GATE_VAR
     else:
         raise ValueError(f"MAP prior '{prior}' unknown; expected 'posterior' or 'standard'")
     y_std = np.asarray(prim.norm.y_std, dtype=np.float64)
@@ -430,7 +434,8 @@ def refine_exact(prim: "DeepProMP", latent: LatentGaussian, via_x, via_y, joint_
                  latent_bound: float = 5.0, time_budget: float | None = None) -> RefinementResult:
     """Refinement that meets the via-points exactly (paper Eq. 5 and appendix).
 
-    Stage 1 moves μ̃ — starting at the given (posterior) mean — so that the trajectory the robot
+    Stage 1 moves μ̃ — starting at the given (posterior) mean, or for an aggregation with several modes
+    (below) at its most probable mode — so that the trajectory the robot
     executes, μ_y(μ̃, x), passes through the via-points: damped Gauss–Newton
     (Levenberg–Marquardt) in float64 with the decoder's exact Jacobian. Stage 2 keeps μ̃ and fits
     σ̃ to the paper's objective Σ_i ||y_i − 1/K Σ_k μ_y(μ̃ + ε_k σ̃, x_i)||² + ||σ* − σ̃||² with

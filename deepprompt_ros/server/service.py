@@ -119,8 +119,9 @@ class PrimitiveServerCore:
     def _samples(self, prim: LoadedPrimitive, dist: StoredDistribution, x: np.ndarray, n: int,
                  seed: int) -> np.ndarray:
         """n trajectories, ONE ε per trajectory: shape (n, T, d)."""
-        if isinstance(dist, ConditionedLatent):  # the model's draws (a split latent's exact posterior; each z in
-            return prim.model.sample(dist.latent, x, n, seed)  # the mode it chooses)
+        if isinstance(dist, ConditionedLatent) and (dist.latent.linear is not None or prim.model.cfg.decoder_modes):
+            # the model's draws: a split latent's exact posterior; with several modes each z in the mode it chooses
+            return prim.model.sample(dist.latent, x, n, seed)
         k, t = prim.model.latent_dim, x.shape[0]
         eps = np.random.default_rng(seed).standard_normal((n, k))
         mean, var = dist.latent_at(x)  # (T, k) each
