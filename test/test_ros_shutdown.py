@@ -1,6 +1,7 @@
 """deepprompt_ros.ros.shutdown.spin_until_shutdown: a node process's spin ends cleanly when the process is
 asked to stop, also when the executor sees the context shut down while it builds its wait set (RCLError),
-and any other error still propagates. A real rclpy context; no DDS traffic."""
+also when the SIGINT's KeyboardInterrupt surfaces as the cause of another error (raised inside a
+pybind11 call), and any other error still propagates. A real rclpy context; no DDS traffic."""
 import pytest
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -43,3 +44,22 @@ def test_an_error_while_the_context_runs_or_another_error_propagates(context):
         raise ValueError("a bug")
     with pytest.raises(ValueError, match="a bug"):
         spin_until_shutdown(other, context)
+
+
+def test_an_error_caused_by_a_keyboard_interrupt_is_a_stop_and_one_caused_by_a_bug_is_not(context):
+    def deserialize(cause):  # as pybind11 reports a KeyboardInterrupt raised inside the message's __init__
+        try:
+            raise cause
+        except BaseException as inner:
+            raise TypeError("Unable to convert function return value to a Python type!") from inner
+
+    spin_until_shutdown(lambda: deserialize(KeyboardInterrupt()), context)  # returns, context still running
+
+    def handled():  # raised while handling the interrupt (implicit chaining)
+        try:
+            raise KeyboardInterrupt()
+        except KeyboardInterrupt:
+            raise ValueError("in a finally block")
+    spin_until_shutdown(handled, context)
+    with pytest.raises(TypeError, match="Unable to convert"):
+        spin_until_shutdown(lambda: deserialize(ValueError("bad message")), context)
