@@ -240,19 +240,30 @@ def _mode_prior(prim: "DeepProMP", latent: LatentGaussian, z: np.ndarray) -> Lat
 
 
 # ---------------------------------------------------------------------------------------- exact
+def _result_as_is(prim: "DeepProMP", latent: LatentGaussian, x, y, mask, n_samples: int, seed: int, *,
+                  tol: float, iterations: int, reason: str, history=None, out_of_time: bool = False) -> RefinementResult:
+    """The :class:`RefinementResult` of ``latent`` as it is, without fitting it further: its executed
+    mean's residuals and the sample mean error of ``n_samples`` draws (:meth:`DeepProMP.sample`);
+    ``history`` the errors of the iterations that led to it (None: its own error alone)."""
+    mf = mask.astype(np.float64)
+    r = (y - prim.decode_mean(latent, x)) * mf
+    y_bar = prim.sample(latent, x, n_samples, seed).mean(0)
+    max_err = float(np.abs(r).max())
+    return RefinementResult(latent=latent, max_error=max_err, errors=r,
+                            sample_mean_error=float(np.abs((y - y_bar) * mf).max()), iterations=iterations,
+                            reachable=max_err <= tol, reason=reason,
+                            error_history=np.minimum.accumulate(np.asarray(
+                                [max_err] if history is None else history, dtype=np.float64)),
+                            out_of_time=out_of_time and max_err > tol)
+
+
 def _split_result(prim: "DeepProMP", split: SplitRefinement, x, y, mask, n_samples: int,
                   seed: int, out_of_time: bool = False) -> RefinementResult:
     """The :class:`RefinementResult` of a split latent refined in its linear block alone; the sample
     mean error is that of ``n_samples`` draws of the latent (candidates by weight, z_lin exact)."""
-    mf = mask.astype(np.float64)
-    r = (y - prim.decode_mean(split.latent, x)) * mf
-    y_bar = prim.sample(split.latent, x, n_samples, seed).mean(0)
-    max_err = float(np.abs(r).max())
-    return RefinementResult(latent=split.latent, max_error=max_err, errors=r,
-                            sample_mean_error=float(np.abs((y - y_bar) * mf).max()), iterations=split.iterations,
-                            reachable=max_err <= split.tol, reason=split.reason,
-                            error_history=np.minimum.accumulate(np.array(split.history)),
-                            out_of_time=out_of_time and max_err > split.tol)
+    return _result_as_is(prim, split.latent, x, y, mask, n_samples, seed, tol=split.tol,
+                         iterations=split.iterations, reason=split.reason, history=split.history,
+                         out_of_time=out_of_time)
 
 
 class _MeanFit:
@@ -491,13 +502,10 @@ def refine_exact(prim: "DeepProMP", latent: LatentGaussian, via_x, via_y, joint_
     if latent.linear is None and latent.mode_weights is not None:
         # an aggregation with several modes of the decoder and no via-point in it: its executed mean weighs the
         # modes, the decoder that μ̃ is fitted with has one
-        r = (y - prim.decode_mean(latent, x)) * mask
-        if float(np.abs(r).max()) <= tol:
-            y_bar = prim.sample(latent, x, n_samples, seed).mean(0)
-            return RefinementResult(latent=latent, max_error=float(np.abs(r).max()), errors=r,
-                                    sample_mean_error=float(np.abs((y - y_bar) * mask).max()), iterations=0,
-                                    reachable=True, reason="met by the executed mean already",
-                                    error_history=np.array([float(np.abs(r).max())]))
+        as_is = _result_as_is(prim, latent, x, y, mask, n_samples, seed, tol=tol, iterations=0,
+                              reason="met by the executed mean already")
+        if as_is.reachable:
+            return as_is
         mode = int(np.argmax(latent.mode_weights))
         in_mode = f" (in mode {mode}, the aggregation's most probable: {float(latent.mode_weights[mode]):.3g})"
         latent = _one_mode(prim, latent, mode)
