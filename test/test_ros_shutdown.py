@@ -59,7 +59,7 @@ def test_an_error_caused_by_a_keyboard_interrupt_is_a_stop_and_one_caused_by_a_b
         try:
             raise KeyboardInterrupt()
         except KeyboardInterrupt:
-            raise ValueError("in a finally block")
+            raise ValueError("while the interrupt is handled")
     spin_until_shutdown(handled, context)
     with pytest.raises(TypeError, match="Unable to convert"):
         spin_until_shutdown(lambda: deserialize(ValueError("bad message")), context)
