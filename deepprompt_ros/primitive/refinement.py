@@ -241,12 +241,14 @@ def _mode_prior(prim: "DeepProMP", latent: LatentGaussian, z: np.ndarray) -> Lat
 
 # ---------------------------------------------------------------------------------------- exact
 def _result_as_is(prim: "DeepProMP", latent: LatentGaussian, x, y, mask, n_samples: int, seed: int, *,
-                  tol: float, iterations: int, reason: str, history=None, out_of_time: bool = False) -> RefinementResult:
+                  tol: float, iterations: int, reason: str, history=None, out_of_time: bool = False,
+                  errors: np.ndarray | None = None) -> RefinementResult:
     """The :class:`RefinementResult` of ``latent`` as it is, without fitting it further: its executed
-    mean's residuals and the sample mean error of ``n_samples`` draws (:meth:`DeepProMP.sample`);
-    ``history`` the errors of the iterations that led to it (None: its own error alone)."""
+    mean's residuals (``errors`` when the caller has them) and the sample mean error of ``n_samples``
+    draws (:meth:`DeepProMP.sample`); ``history`` the errors of the iterations that led to it (None: its
+    own error alone)."""
     mf = mask.astype(np.float64)
-    r = (y - prim.decode_mean(latent, x)) * mf
+    r = (y - prim.decode_mean(latent, x)) * mf if errors is None else errors
     y_bar = prim.sample(latent, x, n_samples, seed).mean(0)
     max_err = float(np.abs(r).max())
     return RefinementResult(latent=latent, max_error=max_err, errors=r,
@@ -502,10 +504,10 @@ def refine_exact(prim: "DeepProMP", latent: LatentGaussian, via_x, via_y, joint_
     if latent.linear is None and latent.mode_weights is not None:
         # an aggregation with several modes of the decoder and no via-point in it: its executed mean weighs the
         # modes, the decoder that μ̃ is fitted with has one
-        as_is = _result_as_is(prim, latent, x, y, mask, n_samples, seed, tol=tol, iterations=0,
-                              reason="met by the executed mean already")
-        if as_is.reachable:
-            return as_is
+        r = (y - prim.decode_mean(latent, x)) * mask
+        if float(np.abs(r).max()) <= tol:  # (the samples are drawn only for a result returned)
+            return _result_as_is(prim, latent, x, y, mask, n_samples, seed, tol=tol, iterations=0,
+                                 reason="met by the executed mean already", errors=r)
         mode = int(np.argmax(latent.mode_weights))
         in_mode = f" (in mode {mode}, the aggregation's most probable: {float(latent.mode_weights[mode]):.3g})"
         latent = _one_mode(prim, latent, mode)
