@@ -92,6 +92,8 @@ def reach_timing(client, server: str = "/primitive_server", timeout: float = 20.
     from deepprompt_ros.server.config import ServerConfig
 
     req = Condition.Request(primitive="reach", preview_points=ServerConfig().execution_grid_points)
-    r = client.call(Condition, f"{server}/condition", req, timeout=timeout)
+    # sent again after 5 s without a reply: the first call of a client can lose its reply while the server has
+    # not yet matched the client's reply reader (RosTestClient.wait_for_service); a repeat stores one more handle
+    r = client.call(Condition, f"{server}/condition", req, timeout=timeout, resend_after=5.0)
     assert r.success, r.message
     return ReachTiming(limit_ratios(conv.preview_from_msg(r.preview).mean, list(r.preview.joint_names)))
