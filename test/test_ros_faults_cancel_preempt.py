@@ -53,6 +53,9 @@ def client(ros_env, repo_root):
             assert c.wait_for(c.ac.server_is_ready, 60), c.server.output_tail()
             assert c.wait_for(lambda: "receiving joint_states" in c.server.output(), 60), (
                 c.server.output_tail() + procs["sim"].output_tail())
+            # the commands come from the server's control process: a goal's first commands are only received
+            # once this subscription has matched its publisher
+            assert c.wait_for(c.tap.matched, 60), c.server.output_tail()
             c.handle = handle(c)
             # every goal runs near the shortest duration the velocity limits allow for that handle (the prior
             # mean, timed as the server times it): c.timing.fast; a goal canceled while braking is canceled

@@ -62,6 +62,9 @@ def client(ros_env, nodes):
         assert c.wait_for(c.ac.server_is_ready, 60), server.output_tail()
         assert c.wait_for(lambda: "receiving joint_states" in server.output(), 60), (
             server.output_tail() + nodes["sim"].output_tail())
+        # the commands come from the server's control process: a goal's first commands are only received
+        # once this subscription has matched its publisher
+        assert c.wait_for(c.tap.matched, 60), server.output_tail()
         # every goal runs near the shortest duration the velocity limits allow for the served reach's prior
         # mean (timed as the server times it): c.timing.fast
         c.timing = reach_timing(c)

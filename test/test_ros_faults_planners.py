@@ -151,6 +151,7 @@ def test_two_planners_condition_and_execute_at_once(ros_env, nodes, tmp_path):
         # the planners' goal duration: executable within the velocity limits for every via-point drawn (they
         # lie within 0.015 rad of the prior mean, which the ordinary margin over its shortest duration covers)
         duration = reach_timing(client, timeout=60.0).ordinary  # (the server may still be starting)
+        assert client.wait_for(tap.matched, 60), server.output_tail()  # the control process's command publisher
         planners = {}
         try:
             for name, seed in (("a", 1), ("b", 2)):

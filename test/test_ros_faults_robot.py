@@ -141,7 +141,7 @@ def client(ros_env, server, sim):
         assert c.wait_for(c.ac.server_is_ready, 60), server.output_tail()
         assert c.wait_for(lambda: "receiving joint_states" in server.output(), 60), (
             server.output_tail() + sim.ensure().output_tail())
-        assert c.wait_for_publisher("/joint_command", 30), server.output_tail()
+        assert c.wait_for(c.tap.matched, 30), server.output_tail()  # the control process's command publisher
         # durations of the executions (s): .ordinary, executable within the velocity limits; .fast, near the
         # shortest they allow (the lagging robot falls far behind its commands)
         c.timing = reach_timing(c)

@@ -215,6 +215,8 @@ def test_one_planner_executes_on_both_arms_at_once(planner, nodes):
 
     feedback = {arm.namespace: [] for arm in ARMS}
     try:
+        # each arm's taps have matched its publishers (what comes before is not received)
+        assert planner.wait_for(lambda: take() or all(t.matched() for t in taps.values()), 30.0), _outputs(nodes)
         planner.wait_for(lambda: take() or False, 0.3)
         for tap in every_tap:
             tap.raw.clear()

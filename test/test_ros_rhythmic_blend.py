@@ -79,8 +79,9 @@ class Rig:
         assert self.client.wait_for(lambda: "receiving joint_states" in server.output(), 60.0), (
             server.output_tail() + self.procs["sim"].output_tail())
         # the commands come from the server's control process (another DDS participant): its
-        # publisher is discovered on its own, possibly after the action server
-        assert self.client.wait_for_publisher("/joint_command", 60.0), server.output_tail()
+        # publisher is discovered on its own, possibly after the action server; its first commands are
+        # received once this subscription has matched it
+        assert self.client.wait_for(self.cmd.matched, 60.0), server.output_tail()
 
     def call(self, srv, name, req, timeout=20.0):
         return self.client.call(srv, f"{SRV}/{name}", req, timeout=timeout)

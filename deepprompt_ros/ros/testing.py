@@ -525,6 +525,12 @@ class JointStateTap:
             callback_group=NotExecuted(), raw=True)
         self.raw: list[bytes] = []
 
+    def matched(self) -> bool:
+        """The subscription has matched at least one publisher of the topic. A publisher known to the
+        graph (``Node.count_publishers``) may not be matched yet; what it publishes before then is
+        not received."""
+        return self.sub.get_publisher_count() > 0
+
     def take(self) -> None:
         """Move the queued messages into :attr:`raw`."""
         from deepprompt_ros.ros.fastpath.polled import take_all
