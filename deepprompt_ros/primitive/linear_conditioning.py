@@ -478,6 +478,11 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
                           mode_weights=mode_weights)
 
 
+#: :func:`smallest_change`: the largest miss of a row by the change solved for, relative to the largest
+#: residual (at least 1 rad), for the change to count as meeting the rows.
+CHANGE_MET_TOLERANCE = 1e-6
+
+
 def smallest_change(net: "NumpyNet", h: np.ndarray, residual: np.ndarray,
                     hm: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
     """The changes Δ of z_lin that meet the via-point rows exactly with the smallest change of the
@@ -492,13 +497,21 @@ def smallest_change(net: "NumpyNet", h: np.ndarray, residual: np.ndarray,
 
     h : array, shape (M, k_l), the rows (joint units); residual : array, shape (C, M), per candidate;
     hm : array, shape (M, k_l), optional, H M⁻¹ when the caller has it (:meth:`NumpyNet.metric_design`)
-    Returns (Δ (C, k_l), Δᵀ M Δ (C,) = rᵀ (H M⁻¹ Hᵀ)⁻¹ r), or None when H M⁻¹ Hᵀ is singular (rows that
-    cannot all be met)."""
+    Returns (Δ (C, k_l), Δᵀ M Δ (C,) = rᵀ (H M⁻¹ Hᵀ)⁻¹ r), or None when the rows cannot all be met:
+    H M⁻¹ Hᵀ singular, or the Δ solved for misses a row by more than :data:`CHANGE_MET_TOLERANCE` (relative
+    to the largest residual, at least 1 rad) -- dependent rows whose Gram matrix is singular in exact
+    arithmetic can be solved to finite, useless values by rounding, depending on the BLAS kernel."""
     if hm is None:
         hm = h @ net.trajectory_metric_inverse()  # (M, k_l)
     lam = _general_solve(hm @ h.T, residual.T).T  # (C, M); a singular H M⁻¹ Hᵀ gives inf / NaN: refused
     out = lam @ hm
-    return (out, np.einsum("cm,cm->c", lam, residual)) if math.isfinite(out.sum()) else None
+    if not math.isfinite(out.sum()):
+        return None
+    if residual.size:
+        scale = max(1.0, float(np.abs(residual).max()))
+        if float(np.abs(out @ h.T - residual).max()) > CHANGE_MET_TOLERANCE * scale:
+            return None
+    return out, np.einsum("cm,cm->c", lam, residual)
 
 
 def _posterior_mean(g: np.ndarray, d: np.ndarray, gram: np.ndarray, rows: np.ndarray | float) -> np.ndarray:
