@@ -48,7 +48,9 @@ def run_train(work: pathlib.Path, name: str, steps: int, threads: int, processes
                            str(cfg), "--out", str(work / f"{name}.safetensors")],
                           capture_output=True, text=True, env=env, timeout=3600)
     if proc.returncode != 0:
-        raise RuntimeError(f"{name} failed ({proc.returncode}): {proc.stderr[-2000:]}")
+        # a training process's own message comes first; torchrun's summary of the failure last
+        err = proc.stderr if len(proc.stderr) <= 4000 else f"{proc.stderr[:2000]}\n[...]\n{proc.stderr[-2000:]}"
+        raise RuntimeError(f"{name} failed ({proc.returncode}): {err}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
