@@ -98,22 +98,27 @@ def main(argv=None) -> int:
         res = res_fut.result().result
         print(f"execute: success={res.success} code={res.code.value} '{res.message}' "
               f"max_tracking_error={res.max_tracking_error:.2e} rad")
-        # 4) measured arm state when the phase crossed the via-point (one snapshot of each list, in
-        # time order: the executor's threads may have run callbacks out of order)
+        # 4) the arm's closest approach to the via-point: the measured joint_states sample whose largest joint
+        # error is the smallest (one snapshot of each list, in time order: the executor's threads may have run
+        # callbacks out of order); the feedback phase at that time says where in the motion it was
         with lock:
             feedback_seen, states_seen = sorted(feedback), sorted(states, key=lambda s: s[0])
-        t_via = next((t for t, ph in feedback_seen if ph >= args.via_phase), None)
-        if t_via is None or not states_seen:
-            print("no feedback/joint_states received around the via-point", file=sys.stderr)
+        if not feedback_seen or not states_seen:
+            print("no feedback/joint_states received during the execution", file=sys.stderr)
             return 1
-        ts = np.array([t for t, _ in states_seen])
-        qs = np.array([[s.get(j, np.nan) for j in joint_names] for _, s in states_seen])
-        q_at = np.array([np.interp(t_via, ts, qs[:, j]) for j in range(len(joint_names))])
-        err = np.abs(q_at - via)
+        t0, t1 = feedback_seen[0][0], feedback_seen[-1][0]
+        during = [(t, s) for t, s in states_seen if t0 - 0.5 <= t <= t1 + 0.5]
+        qs = np.array([[s.get(j, np.nan) for j in joint_names] for _, s in during]).reshape(-1, len(joint_names))
+        if not len(qs):
+            print("no joint_states received during the execution", file=sys.stderr)
+            return 1
+        k = int(np.argmin(np.abs(qs - via).max(1)))
+        err = np.abs(qs[k] - via)
+        phase_at = np.interp(during[k][0], [t for t, _ in feedback_seen], [ph for _, ph in feedback_seen])
         print("via-point error achieved by the simulated arm (rad): "
-              + ", ".join(f"{j}={e:.4f}" for j, e in zip(joint_names, err)) + f"; max {err.max():.4f}")
-        print("(measured from joint_states at the feedback time of the via phase; feedback is published "
-              "at a lower rate than the control loop, so this includes up to one feedback period of motion)")
+              + ", ".join(f"{j}={e:.5f}" for j, e in zip(joint_names, err)) + f"; max {err.max():.5f}")
+        print(f"(the measured joint_states sample closest to the via-point, at feedback phase {phase_at:.3f}; "
+              f"the via phase is {args.via_phase:g})")
         return 0 if res.success else 1
     finally:
         # the spinning thread must have left rclpy before the interpreter exits: a thread still waiting in

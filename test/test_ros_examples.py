@@ -22,10 +22,11 @@ from deepprompt_ros.ros.testing import NodeProcess, RosTestClient, isolated_ros_
 #: Bound on the printed via-point error (max over joints, rad). The example moves the via-point
 #: 0.05 rad (its --via-offset) away from where the context-only primitive passes on joint_1, so an
 #: execution that ignored the via-point, or was not refined to it, prints about 0.05. The refined
-#: mean meets it within 1e-6 rad; what is printed adds the simulated arm's tracking lag and up to
-#: one feedback period of motion, because the example reads joint_states at the arrival time of the
-#: first feedback at or past the via phase (see its last printed line).
-VIA_ERROR_BOUND = 0.02
+#: mean meets it within 1e-6 rad; what is printed is the measured joint_states sample closest to it,
+#: which adds the simulated arm's tracking error (the server reports at most 6.4e-4 rad for this goal)
+#: and up to half a joint_states period of motion (below 2e-4 rad: the reach moves at most 0.07 rad/s
+#: around the via phase); 1e-4 rad is typical.
+VIA_ERROR_BOUND = 0.002
 VIA_OFFSET = 0.05
 ERROR_LINE = re.compile(r"via-point error achieved by the simulated arm \(rad\): .*; max ([0-9.]+)$", re.M)
 
