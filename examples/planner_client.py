@@ -107,8 +107,9 @@ def main(argv=None) -> int:
             print("no feedback/joint_states received during the execution", file=sys.stderr)
             return 1
         t0, t1 = feedback_seen[0][0], feedback_seen[-1][0]
-        during = [(t, s) for t, s in states_seen if t0 - 0.5 <= t <= t1 + 0.5]
-        qs = np.array([[s.get(j, np.nan) for j in joint_names] for _, s in during]).reshape(-1, len(joint_names))
+        during = [(t, [s.get(j, np.nan) for j in joint_names]) for t, s in states_seen if t0 - 0.5 <= t <= t1 + 0.5]
+        during = [(t, q) for t, q in during if np.all(np.isfinite(q))]  # (a state naming other joints: skipped)
+        qs = np.array([q for _, q in during]).reshape(-1, len(joint_names))
         if not len(qs):
             print("no joint_states received during the execution", file=sys.stderr)
             return 1
