@@ -805,7 +805,8 @@ def measure(args, env, tmp: pathlib.Path, prim_file: pathlib.Path, spec, limits,
         end = time.monotonic() + 60
         while "receiving joint_states" not in server.output():
             if time.monotonic() > end:
-                raise RuntimeError("primitive_server receives no joint_states:\n" + server.output_tail())
+                raise RuntimeError("primitive_server receives no joint_states:\n" + server.output_tail() + "\n"
+                                   + procs[0].output_tail())
             time.sleep(0.1)
 
         # ---- phase 1: one long execution; subscriber, client and reference loop in their own processes

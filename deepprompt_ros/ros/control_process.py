@@ -354,8 +354,12 @@ def _child(fd: int, parent_pid: int) -> int:
             realtime.name_os_thread("executor")
             try:
                 executor.spin()
-            except Exception:  # shut down
-                pass
+            except Exception as exc:  # shut down; else the states stop coming: end, the server restarts us
+                if not stop.is_set():
+                    log.error(f"control process: its executor stopped ({exc!r}); no joint_states can arrive, "
+                              "the process ends and the server starts a new one")
+                    stop.set()
+                    wake.set()
 
         threading.Thread(target=spin, name="executor", daemon=True).start()
     loop.start(threaded=True)
@@ -379,6 +383,7 @@ def _child(fd: int, parent_pid: int) -> int:
     except (OSError, EOFError):
         pass
     finally:
+        stop.set()
         loop.shutdown()
         if executor is not None:
             executor.shutdown(timeout_sec=1.0)
