@@ -180,7 +180,8 @@ def test_smallest_change_meets_the_rows_with_the_least_change_of_the_trajectory(
     net = DeepProMP.from_checkpoint(str(SPLIT))._np
     h = net.linear_design(np.array([0.1, 0.45, 0.8]))[1].reshape(-1, net.k_lin)  # 18 rows, 32-D block
     r = np.random.default_rng(0).normal(0.0, 0.01, (2, h.shape[0]))
-    delta, sq = smallest_change(net, h, r)
+    delta, sq, after = smallest_change(net, h, r)
+    np.testing.assert_allclose(after, r - delta @ h.T, rtol=0, atol=0)
     np.testing.assert_allclose(delta @ h.T, r, rtol=0, atol=1e-10)
     metric = np.linalg.inv(net.trajectory_metric_inverse())
     np.testing.assert_allclose(sq, np.einsum("ik,kl,il->i", delta, metric, delta), rtol=1e-8)

@@ -54,7 +54,8 @@ class LinearBlock:
 
     * ``form="observation"`` (M <= k_l rows): ``design`` G (M, k_l), the whitened design (rows of the
       via-points' observed joints divided by their noise, columns times ``scale``), and ``chol`` the
-      lower Cholesky factor of I_M + G Gᵀ; Q = I − Gᵀ (I + G Gᵀ)⁻¹ G.
+      lower Cholesky factor of I_M + G Gᵀ; Q = I − Gᵀ (I + G Gᵀ)⁻¹ G. A conditioning whose mean needs
+      no factor leaves ``factor`` None: ``chol`` factors I + G Gᵀ when it is first read.
     * ``form="information"`` (M > k_l rows): ``chol`` the lower Cholesky factor of the whitened
       precision I + Gᵀ G; Q = (I + GᵀG)⁻¹. ``design`` is None.
 
@@ -67,7 +68,8 @@ class LinearBlock:
     weights : array, shape (C,)
         Importance weights of the candidates (closed-form marginal likelihood of the via-points times
         q_c(z_nl) / q_all(z_nl)), sum 1.
-    chol : array, shape (M, M) or (k_l, k_l)
+    factor : array, shape (M, M) or (k_l, k_l), or None
+        ``chol`` as computed by the conditioning (None: not yet, observation form only).
     design : array, shape (M, k_l), or None
     form : {"observation", "information"}
     noise : float
@@ -96,7 +98,7 @@ class LinearBlock:
     scale: np.ndarray
     candidates: np.ndarray
     weights: np.ndarray
-    chol: np.ndarray
+    factor: np.ndarray | None
     design: np.ndarray | None
     form: str
     noise: float
@@ -110,6 +112,18 @@ class LinearBlock:
     @property
     def k_lin(self) -> int:
         return int(self.scale.shape[0])
+
+    @property
+    def chol(self) -> np.ndarray:
+        """The lower Cholesky factor of the form: ``factor``, or in the observation form that of
+        I + G Gᵀ computed now (once; two threads may both compute it: equal arrays, either kept)."""
+        c = self.factor
+        if c is None:
+            s = self.design @ self.design.T
+            s.flat[::s.shape[0] + 1] += 1.0
+            c = np.linalg.cholesky(s)
+            object.__setattr__(self, "factor", c)
+        return c
 
     def whitened_var(self) -> np.ndarray:
         """diag Q, shape (k_l,)."""
@@ -127,7 +141,9 @@ class LinearBlock:
 
     def is_finite(self) -> bool:
         """Whether the factors the covariance is computed from hold no NaN or inf."""
-        total = float(self.chol.sum()) + float(self.scale.sum()) + float(self.nl_var.sum())
+        total = float(self.scale.sum()) + float(self.nl_var.sum())
+        if self.factor is not None:
+            total += float(self.factor.sum())
         if self.design is not None:
             total += float(self.design.sum())
         return math.isfinite(total)

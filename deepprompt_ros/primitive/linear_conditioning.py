@@ -343,11 +343,16 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
     moved = per_mode is not None
     if moved:
         m = per_mode[net.mode_of(candidates_nl)]  # (C, k_l)
+    hm = None  # H M⁻¹ of the via rows (smooth_noise), when it came with H
     if x.shape[0] == 0:  # no via-point: the context rows alone
         h, g = np.zeros((0, k_l)), np.zeros((0, k_l))
         r, d = np.zeros((candidates_nl.shape[0], 0)), np.zeros((candidates_nl.shape[0], 0))
     elif mask is None or mask.all():  # every joint of every via-point: rows in (via-point, joint) order
-        lin_b, lin_a = net.linear_design(x)  # (n, d), (n, d, k_l)
+        if smooth_noise is not None and smooth_noise > noise and x.shape[0] * y.shape[1] <= k_l:
+            lin_b, lin_a, hm = net.linear_design(x, metric=True)  # (n, d), (n, d, k_l) twice
+            hm = hm.reshape(-1, k_l)
+        else:
+            lin_b, lin_a = net.linear_design(x)  # (n, d), (n, d, k_l)
         off = net.decode_nonlinear(candidates_nl, x)  # (C, n, d)
         off += lin_b
         sigma = noise * net.y_std if w is None else noise * net.y_std / np.sqrt(w)[:, None]  # (d,) or (n, d)
@@ -378,12 +383,15 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
     single = candidates_nl.shape[0] == 1
     n_via = h.shape[0]
     smooth = smooth_noise is not None and smooth_noise > noise and 0 < n_via <= k_l
-    if smooth:  # H M⁻¹ (rows as h) for smallest_change
-        hm = (net.metric_design(x).reshape(-1, k_l) if mask is None or mask.all() else
-              net.metric_design(x[mask.any(1)])[mask[mask.any(1)]])
+    if smooth and hm is None:  # H M⁻¹ (rows as h) for smallest_change
+        hm = net.metric_design(x[mask.any(1)])[mask[mask.any(1)]]
     gram = g @ g.T if smooth else None
     try:
-        form, chol, u, loglik = whitened_posterior(g, d, with_loglik=not single, gram=gram, with_mean=not smooth)
+        if smooth and single and g.shape[0] <= k_l:  # the mean needs no factor: the block factors when read
+            form, chol, u, loglik = "observation", None, None, None
+        else:
+            form, chol, u, loglik = whitened_posterior(g, d, with_loglik=not single, gram=gram,
+                                                       with_mean=not smooth)
     except np.linalg.LinAlgError as exc:  # I + GGᵀ is positive definite unless rounding or an overflow breaks it
         if not np.isfinite(g.sum() + d.sum()):
             return _overflow(net.cfg.latent_dim, context_mean, context_var)
@@ -443,9 +451,9 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
         bound = PLANNER_CHANGE_BOUND * float(np.abs(miss[best]).max())
         if change is not None and (math.sqrt(max(change[1][best], 0.0)) <= bound or
                                    float(np.abs(net.trajectory_rows() @ change[0][best]).max()) <= bound):
-            z_lin = z_s + change[0]
+            z_lin, after = z_s + change[0], change[2]
         else:
-            z_lin = z_s
+            z_lin, after = z_s, miss
         if not math.isfinite(z_lin.sum() + (0.0 if single else loglik.sum())):
             return _overflow(net.cfg.latent_dim, context_mean, context_var)
     cands = np.concatenate([z_lin, candidates_nl], 1)  # (C, k)
@@ -461,6 +469,8 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
     # and weighted as the mean is
     if not h.shape[0]:
         via_error = 0.0
+    elif mode_weights is None and smooth:
+        via_error = float(np.abs(after[best]).max())
     elif mode_weights is None:
         via_error = float(np.abs(r[best] - h @ cands[best, :k_l]).max())
     else:
@@ -469,7 +479,7 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
     if modes:  # the prior's, the mode's coordinate narrow: a latent perturbed by its spread keeps its mode
         nl_var = prior_var.copy()
         nl_var[0] = MODE_GATE_VAR
-    block = LinearBlock(scale=s, candidates=cands, weights=weights, chol=chol,
+    block = LinearBlock(scale=s, candidates=cands, weights=weights, factor=chol,
                         design=g if form == "observation" else None, form=form, noise=float(noise),
                         via_error=via_error, nl_var=nl_var, weight_noise=weight_noise if modes else None,
                         move_prior=moved, prior=(context_mean, context_var), context_rows=context_rows)
@@ -484,7 +494,7 @@ CHANGE_MET_TOLERANCE = 1e-6
 
 
 def smallest_change(net: "NumpyNet", h: np.ndarray, residual: np.ndarray,
-                    hm: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+                    hm: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The changes Δ of z_lin that meet the via-point rows exactly with the smallest change of the
     linear part's trajectory: argmin Δᵀ M Δ subject to H Δ = r, i.e. Δ = M⁻¹ Hᵀ (H M⁻¹ Hᵀ)⁻¹ r, with M
     the trajectory metric (:meth:`NumpyNet.trajectory_metric_inverse`: squared change over the phases,
@@ -497,7 +507,8 @@ def smallest_change(net: "NumpyNet", h: np.ndarray, residual: np.ndarray,
 
     h : array, shape (M, k_l), the rows (joint units); residual : array, shape (C, M), per candidate;
     hm : array, shape (M, k_l), optional, H M⁻¹ when the caller has it (:meth:`NumpyNet.metric_design`)
-    Returns (Δ (C, k_l), Δᵀ M Δ (C,) = rᵀ (H M⁻¹ Hᵀ)⁻¹ r), or None when the rows cannot all be met:
+    Returns (Δ (C, k_l), Δᵀ M Δ (C,) = rᵀ (H M⁻¹ Hᵀ)⁻¹ r, r − H Δ (C, M): the rows' misses after the change,
+    rounding), or None when the rows cannot all be met:
     H M⁻¹ Hᵀ singular, or the Δ solved for misses a row by more than :data:`CHANGE_MET_TOLERANCE` (relative
     to the largest residual, at least 1 rad) -- dependent rows whose Gram matrix is singular in exact
     arithmetic can be solved to finite, useless values by rounding, depending on the BLAS kernel."""
@@ -507,11 +518,12 @@ def smallest_change(net: "NumpyNet", h: np.ndarray, residual: np.ndarray,
     out = lam @ hm
     if not math.isfinite(out.sum()):
         return None
+    after = residual - out @ h.T
     if residual.size:
-        scale = max(1.0, float(np.abs(residual).max()))
-        if float(np.abs(out @ h.T - residual).max()) > CHANGE_MET_TOLERANCE * scale:
+        worst = float(np.abs(after).max())  # (the residual's size is needed only beyond the 1 rad floor)
+        if worst > CHANGE_MET_TOLERANCE and worst > CHANGE_MET_TOLERANCE * float(np.abs(residual).max()):
             return None
-    return out, np.einsum("cm,cm->c", lam, residual)
+    return out, (lam * residual).sum(1), after
 
 
 def _posterior_mean(g: np.ndarray, d: np.ndarray, gram: np.ndarray, rows: np.ndarray | float) -> np.ndarray:
@@ -642,7 +654,7 @@ def moved_mean(moved: LatentGaussian, original: LatentGaussian) -> LatentGaussia
     ‖σ* − σ̃‖² is zero at the original σ*; a covariance of the smaller refinement noise would
     understate the uncertainty away from the via-points."""
     o, m = original.linear, moved.linear
-    block = dataclasses.replace(m, scale=o.scale, chol=o.chol, design=o.design, form=o.form, noise=o.noise,
+    block = dataclasses.replace(m, scale=o.scale, factor=o.factor, design=o.design, form=o.form, noise=o.noise,
                                 nl_var=o.nl_var)
     return LatentGaussian(moved.mean, original.var, linear=block, context_mean=original.context_mean,
                           context_var=original.context_var, mode_weights=moved.mode_weights)
