@@ -553,6 +553,10 @@ class DeepProMP:
 
         mu, var : array, shape (n, k); w : array, shape (n,).
         """
+        if mu.shape[0] == 1:  # one element (a request's one context): the same sums of one term, fewer steps
+            prec = w[0] / var[0]
+            var_z = 1.0 / (1.0 + prec)
+            return LatentGaussian(var_z * (prec * mu[0]), var_z)
         return LatentGaussian(*bayesian_aggregate(mu, var, w))
 
     # ------------------------------------------------------------------ decoding

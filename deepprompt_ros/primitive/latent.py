@@ -41,6 +41,12 @@ def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.linalg.solve(a, b) if a.shape[0] else np.zeros_like(b)
 
 
+def _all_finite(*arrays: np.ndarray) -> bool:
+    """Whether the arrays hold no NaN or inf (their sum is finite unless one does, or an overflow of
+    values near the float64 limit, which is refused alike)."""
+    return math.isfinite(sum(float(np.add.reduce(a, axis=None)) for a in arrays))
+
+
 @dataclasses.dataclass(frozen=True)
 class LinearBlock:
     """Posterior of the linear block z_lin (k_l) under exact Gaussian conditioning on via-points, for
@@ -141,12 +147,7 @@ class LinearBlock:
 
     def is_finite(self) -> bool:
         """Whether the factors the covariance is computed from hold no NaN or inf."""
-        total = float(self.scale.sum()) + float(self.nl_var.sum())
-        if self.factor is not None:
-            total += float(self.factor.sum())
-        if self.design is not None:
-            total += float(self.design.sum())
-        return math.isfinite(total)
+        return _all_finite(self.scale, self.nl_var, *(a for a in (self.factor, self.design) if a is not None))
 
     def cov(self) -> np.ndarray:
         """The full posterior covariance of z_lin, diag(scale) Q diag(scale), shape (k_l, k_l)."""
@@ -250,11 +251,11 @@ class LatentGaussian:
 
     def is_finite(self) -> bool:
         """Whether mean and variance hold no NaN or inf (a variance not yet computed: its factors)."""
-        if not math.isfinite(float(self.mean.sum())):
+        if not _all_finite(self.mean):
             return False
         if self._var is None:
             return self.linear.is_finite()
-        return math.isfinite(float(self._var.sum()))
+        return _all_finite(self._var)
 
     @property
     def std(self) -> np.ndarray:
