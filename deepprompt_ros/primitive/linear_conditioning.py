@@ -23,7 +23,10 @@ Numerics (float64): everything is whitened (rows divided by their noise, columns
 std), then factored by Cholesky — of I + G Gᵀ (M × M) when there are no more rows M than k_l, of the
 precision I + Gᵀ G (k_l × k_l) otherwise. The information form solves with the triangular factor; the
 observation form solves for the mean with I + G Gᵀ itself (LU, one call) and keeps the factor for the
-covariance, which is computed only when it is read (:meth:`~deepprompt_ros.primitive.latent.LinearBlock.variance`).
+covariance, which is computed only when it is read
+(:meth:`~deepprompt_ros.primitive.latent.LinearBlock.variance`); the planner's one-candidate path, whose
+mean needs no factor, leaves the factoring to the block as well
+(:attr:`~deepprompt_ros.primitive.latent.LinearBlock.chol`).
 No inverse of an ill-conditioned matrix is formed (the L⁻¹ the covariance uses is that of the Cholesky
 factor, whose condition number is the square root of the factored matrix's).
 
