@@ -49,7 +49,8 @@ def main(argv=None) -> int:
         with lock:
             states.append(sample)
 
-    node.create_subscription(JointState, "joint_states", on_state, 100)
+    # 2 s of 1 kHz states kept: an executor that stalls (a loaded machine) takes them late, not never
+    node.create_subscription(JointState, "joint_states", on_state, 2000)
     cond = node.create_client(Condition, f"{args.server}/condition")
     act = ActionClient(node, Execute, f"{args.server}/execute")
     try:

@@ -95,3 +95,23 @@ def test_a_split_latent_survives_a_checkpoint_round_trip(tmp_path):
     assert (ck.config.latent_linear, ck.config.via_noise) == (4, 1e-4)
     x, z = np.linspace(0, 1, 9), np.linspace(-1, 1, 7)
     np.testing.assert_allclose(DeepProMP.from_checkpoint(ck).decode(z, x), prim.decode(z, x), atol=1e-12)
+
+
+def test_a_linear_block_factors_when_its_covariance_is_read_and_refuses_a_factor_rounding_breaks():
+    """The planner's conditioning leaves the factor of I + G Gᵀ to the block: computed on the first read, kept,
+    and equal to the factor of the same matrix; two rows equal in floating point at a noise so small that I is
+    lost beside G Gᵀ (entries 1e18, spacing 128) make it singular: a ValueError that says so, not numpy's."""
+    from deepprompt_ros.primitive.latent import LinearBlock
+
+    def block(design):
+        return LinearBlock(scale=np.ones(2), candidates=np.zeros((1, 3)), weights=np.ones(1), factor=None,
+                           design=design, form="observation", noise=1e-7, via_error=0.0, nl_var=np.ones(1))
+
+    g = np.array([[0.5, 2.0], [1.0, -0.3]])
+    b = block(g)
+    assert b.factor is None and b.is_finite()
+    np.testing.assert_array_equal(b.chol, np.linalg.cholesky(g @ g.T + np.eye(2)))
+    assert b.factor is b.chol  # kept
+    np.testing.assert_allclose(b.variance()[:2], np.diag(np.linalg.inv(np.eye(2) + g.T @ g)), rtol=1e-12)
+    with pytest.raises(ValueError, match="cannot be factored with via-point noise 1e-07"):
+        block(np.array([[1e9, 0.0], [1e9, 0.0]])).chol

@@ -125,9 +125,17 @@ class LinearBlock:
         I + G Gᵀ computed now (once; two threads may both compute it: equal arrays, either kept)."""
         c = self.factor
         if c is None:
+            assert self.form == "observation", "the information form is factored by its conditioning"
             s = self.design @ self.design.T
             s.flat[::s.shape[0] + 1] += 1.0
-            c = np.linalg.cholesky(s)
+            try:
+                c = np.linalg.cholesky(s)
+            except np.linalg.LinAlgError:  # I + GGᵀ is positive definite unless rounding or an overflow breaks it
+                raise ValueError(
+                    f"the covariance of the exact conditioning of the linear latent block cannot be factored with "
+                    f"via-point noise {self.noise:g} (I + G Gᵀ is not positive definite in floating point): "
+                    "expected via-points of the size of the training data and a noise of at least about 1e-10 "
+                    "(normalized joint units)") from None
             object.__setattr__(self, "factor", c)
         return c
 

@@ -346,16 +346,11 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
     moved = per_mode is not None
     if moved:
         m = per_mode[net.mode_of(candidates_nl)]  # (C, k_l)
-    hm = None  # H M⁻¹ of the via rows (smooth_noise), when it came with H
     if x.shape[0] == 0:  # no via-point: the context rows alone
         h, g = np.zeros((0, k_l)), np.zeros((0, k_l))
         r, d = np.zeros((candidates_nl.shape[0], 0)), np.zeros((candidates_nl.shape[0], 0))
     elif mask is None or mask.all():  # every joint of every via-point: rows in (via-point, joint) order
-        if smooth_noise is not None and smooth_noise > noise and x.shape[0] * y.shape[1] <= k_l:
-            lin_b, lin_a, hm = net.linear_design(x, metric=True)  # (n, d), (n, d, k_l) twice
-            hm = hm.reshape(-1, k_l)
-        else:
-            lin_b, lin_a = net.linear_design(x)  # (n, d), (n, d, k_l)
+        lin_b, lin_a = net.linear_design(x)  # (n, d), (n, d, k_l)
         off = net.decode_nonlinear(candidates_nl, x)  # (C, n, d)
         off += lin_b
         sigma = noise * net.y_std if w is None else noise * net.y_std / np.sqrt(w)[:, None]  # (d,) or (n, d)
@@ -386,8 +381,9 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
     single = candidates_nl.shape[0] == 1
     n_via = h.shape[0]
     smooth = smooth_noise is not None and smooth_noise > noise and 0 < n_via <= k_l
-    if smooth and hm is None:  # H M⁻¹ (rows as h) for smallest_change
-        hm = net.metric_design(x[mask.any(1)])[mask[mask.any(1)]]
+    if smooth:  # H M⁻¹ (rows as h) for smallest_change
+        hm = (net.metric_design(x).reshape(-1, k_l) if mask is None or mask.all() else
+              net.metric_design(x[mask.any(1)])[mask[mask.any(1)]])
     gram = g @ g.T if smooth else None
     try:
         if smooth and single and g.shape[0] <= k_l:  # the mean needs no factor: the block factors when read
@@ -401,7 +397,7 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
         raise ValueError(f"the exact conditioning of the linear latent block failed ({exc}) with via-point noise "
                          f"{noise:g}: expected via-points of the size of the training data and a noise of at least "
                          "about 1e-10 (normalized joint units)") from None
-    # an overflow in G or d ends here (or in the factorization)
+    # an overflow in G or d ends here (or in the factorization; the planner's path without one: in the mean)
     if u is not None and not math.isfinite(u.sum() + (0.0 if single else loglik.sum())):
         return _overflow(net.cfg.latent_dim, context_mean, context_var)
     if single:
@@ -657,7 +653,8 @@ def moved_mean(moved: LatentGaussian, original: LatentGaussian) -> LatentGaussia
     ‖σ* − σ̃‖² is zero at the original σ*; a covariance of the smaller refinement noise would
     understate the uncertainty away from the via-points."""
     o, m = original.linear, moved.linear
+    var = original.var  # (first: a factor it computes is kept for the new block too)
     block = dataclasses.replace(m, scale=o.scale, factor=o.factor, design=o.design, form=o.form, noise=o.noise,
                                 nl_var=o.nl_var)
-    return LatentGaussian(moved.mean, original.var, linear=block, context_mean=original.context_mean,
+    return LatentGaussian(moved.mean, var, linear=block, context_mean=original.context_mean,
                           context_var=original.context_var, mode_weights=moved.mode_weights)

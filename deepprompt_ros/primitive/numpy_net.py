@@ -288,27 +288,11 @@ class NumpyNet:
         np.maximum(h, 0.0, out=h)
         return self._decode_hidden(h)
 
-    def linear_design(self, x: np.ndarray, metric: bool = False) -> tuple[np.ndarray, ...]:
+    def linear_design(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The linear part at phases x (n,) in joint units: Φ(x) b (n, d) and its matrix in z_lin,
-        Φ(x) A (n, d, k_l), so the part is Φ(x) b + Φ(x) A z_lin (``latent_linear`` > 0 only); with
-        ``metric`` also :meth:`metric_design` (n, d, k_l), from the same product with Φ(x)."""
+        Φ(x) A (n, d, k_l), so the part is Φ(x) b + Φ(x) A z_lin (``latent_linear`` > 0 only)."""
         phi = self._phi(x)
-        shape = (-1, *self._basis_A.shape[1:])
-        if not metric:
-            return phi @ self._basis_b, (phi @ self._basis_A_rows).reshape(shape)
-        both = phi @ self._design_and_metric_rows()
-        n = self._basis_A_rows.shape[1]
-        return phi @ self._basis_b, both[:, :n].reshape(shape), both[:, n:].reshape(shape)
-
-    def _design_and_metric_rows(self) -> np.ndarray:
-        """(n_b, 2 d k_l) [A | A M⁻¹] as rows for one product with Φ(x) (computed once)."""
-        rows = self.__dict__.get("_both_rows")
-        if rows is None:
-            self.metric_design(np.zeros(1))  # A M⁻¹ (its rows, once)
-            rows = np.ascontiguousarray(np.concatenate([self._basis_A_rows, self._metric_rows], 1))
-            rows.flags.writeable = False
-            self._both_rows = rows
-        return rows
+        return phi @ self._basis_b, (phi @ self._basis_A_rows).reshape(-1, *self._basis_A.shape[1:])
 
     @staticmethod
     def _per_grid(cache: dict, x, compute: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:

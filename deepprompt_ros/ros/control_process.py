@@ -315,7 +315,7 @@ def _child(fd: int, parent_pid: int) -> int:
                       poll_measured=io.poll_joint_state, thread_setup=realtime.prepare_thread)
     io.on_measured, io.on_refused = loop.update_measured, loop.refuse_measured
     goals: dict[int, _LinkedGoal] = {}
-    wake, stop = threading.Event(), threading.Event()
+    wake, stop, failed = threading.Event(), threading.Event(), threading.Event()
     send_lock = threading.Lock()
 
     def send(msg) -> None:
@@ -358,6 +358,7 @@ def _child(fd: int, parent_pid: int) -> int:
                 if not stop.is_set():
                     log.error(f"control process: its executor stopped ({exc!r}); no joint_states can arrive, "
                               "the process ends and the server starts a new one")
+                    failed.set()
                     stop.set()
                     wake.set()
 
@@ -391,7 +392,7 @@ def _child(fd: int, parent_pid: int) -> int:
         node.destroy_node()
         rclpy.try_shutdown()
         conn.close()
-    return 0
+    return 1 if failed.is_set() else 0
 
 
 def _exit_now(code: int) -> None:

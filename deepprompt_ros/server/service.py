@@ -303,8 +303,11 @@ class PrimitiveServerCore:
             max_err = 0.0
         reachable = max_err <= tol
         dist = ConditionedLatent(prim.name, latent)
+        try:  # (before the handle is stored: a distribution whose spread cannot be computed is refused)
+            preview = self._preview(prim, dist, n_points)
+        except ValueError as exc:
+            raise RequestError(Code.INVALID_REQUEST, str(exc)) from None
         handle, expires = self._store(dist)
-        preview = self._preview(prim, dist, n_points)
         if req.refine and not reachable and out_of_time:
             code = Code.REFINEMENT_UNREACHABLE
             msg = (f"refinement stopped by its time budget of {cfg.refine_time_budget:g} s (parameter "
