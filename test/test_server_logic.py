@@ -194,6 +194,27 @@ def test_condition_reports_the_via_point_error_and_refine_meets_it(core):
     assert refined.handle != plain.handle and refined.expires_in == ServerConfig().handle_ttl
 
 
+def test_a_distribution_whose_spread_cannot_be_computed_is_refused_and_not_stored(models, monkeypatch):
+    """The preview's standard deviation is computed before the handle is stored: a latent whose covariance
+    cannot be factored (the model's ValueError) is refused INVALID_REQUEST with the model's reason, and the
+    store holds nothing more; the next request is served."""
+    core = make_core(models, names=("reach",))
+    model = core.primitives["reach"].model
+    reason = "the covariance of the exact conditioning of the linear latent block cannot be factored"
+
+    def unfactorable(latent, x):
+        raise ValueError(reason)
+
+    before = len(core.handles)
+    with monkeypatch.context() as m:
+        m.setattr(model, "linearized_std", unfactorable)
+        code, message = code_of(core.condition, ConditionRequest("reach", preview_points=20))
+    assert code == Code.INVALID_REQUEST and reason in message
+    assert len(core.handles) == before
+    ok = core.condition(ConditionRequest("reach", preview_points=20))
+    assert ok.code == Code.SUCCESS and len(core.handles) == before + 1
+
+
 def test_refine_with_joint_mask_meets_only_the_constrained_joints(core):
     prior = core.condition(ConditionRequest("reach", preview_points=11))
     target = prior.preview.mean[5] + 0.03
