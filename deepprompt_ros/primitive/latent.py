@@ -34,6 +34,9 @@ PLANNER_TOLERANCE = 1e-6
 #: points oscillates between them — are not met: the planner gets that posterior and its error
 #: (:meth:`deepprompt_ros.primitive.deep_promp.DeepProMP.condition_planner`).
 PLANNER_CHANGE_BOUND = 100.0
+#: What a conditioning whose I + G Gᵀ rounding breaks expects instead (the end of its refusal).
+FACTORABLE_INPUTS = ("expected via-points of the size of the training data and a noise of at least about 1e-10 "
+                     "(normalized joint units)")
 
 
 def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -134,8 +137,7 @@ class LinearBlock:
                 raise ValueError(
                     f"the covariance of the exact conditioning of the linear latent block cannot be factored with "
                     f"via-point noise {self.noise:g} (I + G Gᵀ is not positive definite in floating point): "
-                    "expected via-points of the size of the training data and a noise of at least about 1e-10 "
-                    "(normalized joint units)") from None
+                    + FACTORABLE_INPUTS) from None
             object.__setattr__(self, "factor", c)
         return c
 

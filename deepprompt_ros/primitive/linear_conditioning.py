@@ -54,7 +54,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.linalg import _umath_linalg
 
-from deepprompt_ros.primitive.latent import PLANNER_CHANGE_BOUND, LatentGaussian, LinearBlock
+from deepprompt_ros.primitive.latent import (FACTORABLE_INPUTS, PLANNER_CHANGE_BOUND, LatentGaussian,
+                                            LinearBlock)
 
 if TYPE_CHECKING:
     from deepprompt_ros.primitive.numpy_net import NumpyNet
@@ -395,8 +396,7 @@ def condition_split(net: "NumpyNet", context_mean: np.ndarray, context_var: np.n
         if not np.isfinite(g.sum() + d.sum()):
             return _overflow(net.cfg.latent_dim, context_mean, context_var)
         raise ValueError(f"the exact conditioning of the linear latent block failed ({exc}) with via-point noise "
-                         f"{noise:g}: expected via-points of the size of the training data and a noise of at least "
-                         "about 1e-10 (normalized joint units)") from None
+                         f"{noise:g}: " + FACTORABLE_INPUTS) from None
     # an overflow in G or d ends here (or in the factorization; the planner's path without one: in the mean)
     if u is not None and not math.isfinite(u.sum() + (0.0 if single else loglik.sum())):
         return _overflow(net.cfg.latent_dim, context_mean, context_var)
