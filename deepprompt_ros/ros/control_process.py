@@ -121,7 +121,8 @@ class ControlProcess:
         except subprocess.TimeoutExpired:
             proc.kill()
             code = proc.wait()
-        conn.close()
+        with self._lock:  # (every send holds the lock: none is mid-write when the link closes, and a later one
+            conn.close()  # gets the closed link's OSError, not a TypeError from a handle closed under it)
         if self._stopping:
             return
         why = f"the control process (pid {proc.pid}) exited unexpectedly with code {code}"
